@@ -1,0 +1,47 @@
+# The README's commands. Everything is built from nothing but Python 3.11 and this repository.
+PYTHON ?= python3
+VENV ?= .venv
+# The CPU build available locally; override e.g. `make setup TORCH_SPEC="torch==2.5.1"` (a plain `torch` pulls CUDA).
+TORCH_SPEC ?= torch==2.13.0
+EXTRAS ?= tests
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-$(EXTRAS)
+export OMP_NUM_THREADS ?= 1
+export MKL_NUM_THREADS ?= 1
+
+.PHONY: setup demo test test-fast lint type bench clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+
+$(STAMP): pyproject.toml | $(PY)
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[$(EXTRAS)]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m sb3_taskalloc.demo --out demo_out
+
+# pytest exit code 5 means "no test collected": that is a failure here, never a silent pass.
+test: $(STAMP)
+	@$(PY) -m pytest -q -ra --durations=15 $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "ERROR: pytest collected no tests (exit 5)"; exit 1; fi; exit $$rc
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(PY) -m ruff check sb3_taskalloc envs tuning tests
+	$(PY) -m ruff format --check sb3_taskalloc envs tuning tests
+
+type: $(STAMP)
+	$(PY) -m mypy sb3_taskalloc envs tuning
+
+bench: $(STAMP)
+	$(PY) -m sb3_taskalloc.bench all --out bench_out
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

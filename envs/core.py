@@ -1,0 +1,613 @@
+"""Shared engine of the task-allocation environments (DESIGN §3).
+
+One vectorised NumPy implementation of the allocation mechanics; the four environments of DESIGN §4 are this class
+configured by data tables and keyword arguments (``envs/almighty.py``, ``ept.py``, ``rbf.py``, ``mt.py``).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from scipy.spatial.distance import cdist
+
+#: Upper bound declared for the float features of the observation space (values are far below it in practice).
+FEATURE_HIGH = 1e6
+#: Tolerance used when comparing supplied resources to demands.
+EPS = 1e-6
+
+
+@dataclass
+class TaskTable:
+    """Tasks that can arrive.
+
+    :param rows: (T, 1 + K) array of ``[reward, demand_1..demand_K]``
+    :param positions: optional (T, 2) integer cells used by ``arrival="reference"``
+    :param towers: optional (T,) tower index of each task (EPT: the task is a tower that is then not an entity)
+    """
+
+    rows: np.ndarray
+    positions: np.ndarray | None = None
+    towers: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.rows = np.asarray(self.rows, dtype=np.float64)
+        if self.rows.ndim != 2 or self.rows.shape[1] < 2:
+            raise ValueError(f"task table must be (T, 1 + K) = [reward, demands...], got shape {self.rows.shape}")
+        if self.positions is not None:
+            self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
+            if len(self.positions) != len(self.rows):
+                raise ValueError("task positions must have one row per task")
+        if self.towers is not None:
+            self.towers = np.asarray(self.towers, dtype=np.int64).reshape(-1)
+
+    @property
+    def n_resources(self) -> int:
+        return self.rows.shape[1] - 1
+
+
+@dataclass
+class EntityTable:
+    """Entities (robots, trucks, towers, workers).
+
+    :param cost: (n,) base cost of using the entity once
+    :param supply: (n, K) resources the entity brings
+    :param positions: optional (n, 2) start cells
+    :param wire_cost: optional (n,) per-unit-distance cost (EPT: pair cost = distance × mean wire cost of the pair)
+    """
+
+    cost: np.ndarray
+    supply: np.ndarray
+    positions: np.ndarray | None = None
+    wire_cost: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.cost = np.asarray(self.cost, dtype=np.float64).reshape(-1)
+        self.supply = np.asarray(self.supply, dtype=np.float64)
+        if self.supply.ndim != 2 or len(self.supply) != len(self.cost):
+            raise ValueError(f"entity supply must be (n, K) with n = {len(self.cost)}, got shape {self.supply.shape}")
+        if self.positions is not None:
+            self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
+        if self.wire_cost is not None:
+            self.wire_cost = np.asarray(self.wire_cost, dtype=np.float64).reshape(-1)
+
+    def __len__(self) -> int:
+        return len(self.cost)
+
+
+class TaskAllocEnv(gym.Env):
+    """Dynamic multi-entity task allocation, padded and masked for variable entity and task counts.
+
+    A manager repeatedly assigns free entities to open tasks. Each task needs a vector of resources and pays its
+    reward once the entities committed to it cover that vector; each entity used costs money. The return is
+    Σ over completed tasks of (reward − Σ pair costs of its team).
+
+    ## Action Space
+
+    ``MultiDiscrete([M + 1] * N)``: entry ``i`` is the task slot (``0..M-1``) entity ``i`` is assigned to, or ``M``
+    for "unassigned". Assignments that break the mask (busy or absent entity, closed or empty task) are treated as
+    "unassigned" and counted in ``info["invalid_assignments"]`` (``strict=True`` raises instead). Out-of-space actions
+    (wrong shape, out of range, NaN, non-integer) raise ``ValueError``.
+
+    ## Observation Space
+
+    ``Dict`` padded to ``N = max_entities`` and ``M = max_tasks`` (K = number of resources):
+
+    | key | shape | meaning |
+    |---|---|---|
+    | ``entity_features`` | (N, K + 5) | cost, supply (K), x, y, busy time (steps to arrival + 1, 0 if free), bid |
+    | ``task_features`` | (M, K + 4) | reward, remaining demand (K), x, y, age |
+    | ``entity_supply`` | (N, K) | resources each entity brings |
+    | ``task_demand`` | (M, K) | demand not yet covered by the entities committed to the task |
+    | ``task_reward`` | (M,) | reward paid on completion now (after decay) |
+    | ``pair_cost`` | (N, M) | what entity i is charged if it is assigned to task j now |
+    | ``entity_mask`` | (N,) | entity present and free to be assigned |
+    | ``task_mask`` | (M,) | task present and open (demand not yet covered by committed entities) |
+    | ``action_mask`` | (N·(M+1),) | sb3-contrib layout: per entity, M task choices then "unassigned" (always 1) |
+
+    ## Rewards
+
+    On completion of a task: its current reward minus the pair costs of every entity committed to it (the costs are
+    fixed when the entity is assigned). No other reward. ``info`` carries ``completed_tasks``, ``task_reward_total``,
+    ``cost_total``, ``invalid_assignments`` and ``entity_income`` (what each entity was paid this step).
+
+    ## Starting State
+
+    Entity table restored (positions at their start cells), tasks drawn by the arrival process.
+
+    ## Episode End
+
+    ``terminated`` when nothing more can happen (one-step envs after their step; the reference task list exhausted
+    with every slot empty; every entity used up). Truncation by ``max_episode_steps`` at registration.
+
+    ## Arguments
+
+    See :meth:`__init__`; every table, count, arrival and decay setting is a keyword argument.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "ansi"], "render_fps": 4}  # noqa: RUF012
+
+    def __init__(
+        self,
+        entities: EntityTable,
+        tasks: TaskTable,
+        max_entities: int | None = None,
+        max_tasks: int = 10,
+        grid_size: int | None = None,
+        travel: Literal["none", "manhattan", "chebyshev"] = "none",
+        travel_cost: float = 0.0,
+        busy: bool = True,
+        consume: bool = False,
+        arrival: Literal["random", "reference", "static"] = "random",
+        arrival_period: int = 5,
+        arrival_count: tuple[int, int] = (5, 10),
+        reward_scale: float = 1.0,
+        demand_noise: float = 0.0,
+        decay: float = 1.0,
+        decay_after: int = 10,
+        one_step: bool = False,
+        bidding: bool = False,
+        bid_max: float | None = None,
+        strict: bool = False,
+        render_mode: str | None = None,
+    ) -> None:
+        """
+        :param entities: entity table (cost, supply, start positions, wire costs)
+        :param tasks: table of tasks that can arrive (reward, demands; positions/towers for the reference schedule)
+        :param max_entities: padded entity count N (>= number of entities; default: exactly the table)
+        :param max_tasks: number of task slots M
+        :param grid_size: side of the square grid (positions lie in ``0..grid_size-1``); None for no world
+        :param travel: how committed entities move: ``"none"`` (work at once), ``"manhattan"`` (4-neighbour, y then x),
+            ``"chebyshev"`` (8-neighbour)
+        :param travel_cost: cost per unit of distance added to an entity's base cost (DESIGN §4: base + travel × distance)
+        :param busy: whether committed entities stay committed until their task completes (False: EPT's towers)
+        :param consume: whether an entity that completes a task is used up for the rest of the episode (MT's trucks)
+        :param arrival: ``"random"`` (every ``arrival_period`` steps, ``arrival_count`` tasks drawn from the table at
+            random positions, capped by free slots), ``"reference"`` (the table in order, refilling empty slots every
+            period) or ``"static"`` (the whole table at reset, nothing later)
+        :param arrival_period: steps between arrivals
+        :param arrival_count: inclusive range of the number of tasks drawn per random arrival
+        :param reward_scale: multiplier applied to task rewards and demands when a task arrives (EPT's peak factor 2)
+        :param demand_noise: relative noise on open tasks' demands redrawn every step (EPT's changing peak demand)
+        :param decay: factor ρ applied to the reward and the demand of tasks older than ``decay_after`` steps
+        :param decay_after: age θ (steps) after which tasks decay
+        :param one_step: the episode ends after the first step (Almighty)
+        :param bidding: the entities' base costs are bids posted with :meth:`set_bids` (DESIGN §8)
+        :param bid_max: upper bound of a bid (default: 3 × the largest base cost)
+        :param strict: raise ``ValueError`` on mask-violating assignments instead of counting them
+        :param render_mode: ``"rgb_array"`` or ``"ansi"``
+        """
+        n = len(entities)
+        self.n_entities = n
+        self.max_entities = int(max_entities) if max_entities is not None else n
+        self.max_tasks = int(max_tasks)
+        if self.max_entities < n:
+            raise ValueError(f"max_entities={self.max_entities} is smaller than the {n} entities of the table")
+        if self.max_tasks < 1:
+            raise ValueError(f"max_tasks must be >= 1, got {self.max_tasks}")
+        if tasks.n_resources != entities.supply.shape[1]:
+            raise ValueError(
+                f"tasks demand {tasks.n_resources} resources but entities supply {entities.supply.shape[1]}: K must match"
+            )
+        if travel not in ("none", "manhattan", "chebyshev"):
+            raise ValueError(f"travel must be 'none', 'manhattan' or 'chebyshev', got {travel!r}")
+        if arrival not in ("random", "reference", "static"):
+            raise ValueError(f"arrival must be 'random', 'reference' or 'static', got {arrival!r}")
+        if arrival_count[0] < 0 or arrival_count[1] < arrival_count[0]:
+            raise ValueError(f"arrival_count must be an increasing (low, high) pair, got {arrival_count}")
+        if not 0.0 < decay <= 1.0:
+            raise ValueError(f"decay must lie in (0, 1], got {decay}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if travel != "none" and (entities.positions is None or grid_size is None):
+            raise ValueError("travel needs entity positions and a grid_size")
+
+        self.entities = entities
+        self.tasks = tasks
+        self.K = tasks.n_resources
+        self.grid_size = grid_size
+        self.travel = travel
+        self.travel_cost = float(travel_cost)
+        self.busy = busy
+        self.consume = consume
+        self.arrival = arrival
+        self.arrival_period = int(arrival_period)
+        self.arrival_count = (int(arrival_count[0]), int(arrival_count[1]))
+        self.reward_scale = float(reward_scale)
+        self.demand_noise = float(demand_noise)
+        self.decay = float(decay)
+        self.decay_after = int(decay_after)
+        self.one_step = one_step
+        self.bidding = bidding
+        self.bid_max = float(bid_max) if bid_max is not None else float(3.0 * max(entities.cost.max(), 1.0))
+        self.strict = strict
+        self.render_mode = render_mode
+        self.has_positions = entities.positions is not None
+
+        N, M, K = self.max_entities, self.max_tasks, self.K
+        self.n_entity_features = K + 5
+        self.n_task_features = K + 4
+        f32 = np.float32
+        self.observation_space = spaces.Dict(
+            {
+                "entity_features": spaces.Box(0.0, FEATURE_HIGH, (N, self.n_entity_features), f32),
+                "task_features": spaces.Box(0.0, FEATURE_HIGH, (M, self.n_task_features), f32),
+                "entity_supply": spaces.Box(0.0, FEATURE_HIGH, (N, K), f32),
+                "task_demand": spaces.Box(0.0, FEATURE_HIGH, (M, K), f32),
+                "task_reward": spaces.Box(0.0, FEATURE_HIGH, (M,), f32),
+                "pair_cost": spaces.Box(0.0, FEATURE_HIGH, (N, M), f32),
+                "entity_mask": spaces.MultiBinary(N),
+                "task_mask": spaces.MultiBinary(M),
+                "action_mask": spaces.MultiBinary(N * (M + 1)),
+            }
+        )
+        self.action_space = spaces.MultiDiscrete(np.full(N, M + 1, dtype=np.int64))
+
+        # Static padded entity arrays (never mutated; shared by deep copies).
+        self._cost0 = np.zeros(N)
+        self._cost0[:n] = entities.cost
+        self._supply0 = np.zeros((N, K))
+        self._supply0[:n] = entities.supply
+        self._pos0 = np.zeros((N, 2))  # integer cells stored as floats (no casts in the hot path)
+        if entities.positions is not None:
+            self._pos0[:n] = entities.positions
+        self._wire = np.zeros(N)
+        if entities.wire_cost is not None:
+            self._wire[:n] = entities.wire_cost
+        self._present0 = np.zeros(N, dtype=bool)
+        self._present0[:n] = True
+        self._task_rows = tasks.rows * self.reward_scale
+        self._metric = {"none": "euclidean", "manhattan": "cityblock", "chebyshev": "chebyshev"}[travel]
+        self._eye = np.vstack([np.eye(M), np.zeros((1, M))])  # row M (= row -1) is "no task"
+        self._entity_index = np.arange(N)
+        self._state_ready = False
+
+    # ------------------------------------------------------------------ state
+
+    def _init_state(self) -> None:
+        N, M, K = self.max_entities, self.max_tasks, self.K
+        self._t = 0
+        self._pos = self._pos0.copy()
+        self._supply = self._supply0.copy()
+        self._alive = self._present0.copy()  # present and not used up
+        self._assigned = np.full(N, -1, dtype=np.int64)  # task slot an entity is committed to, -1 if free
+        self._charge = np.zeros(N)  # pair cost fixed at commitment
+        self._bid = np.zeros(N)
+        self._occupied = np.zeros(M, dtype=bool)
+        self._reward = np.zeros(M)
+        self._base_demand = np.zeros((M, K))
+        self._demand = np.zeros((M, K))  # current total demand (after decay and noise)
+        self._tpos = np.zeros((M, 2))
+        self._age = np.zeros(M, dtype=np.int64)
+        self._tower = np.full(M, -1, dtype=np.int64)  # EPT: tower that is the task
+        self._next_ref = 0
+        self._state_ready = True
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict]:
+        super().reset(seed=seed)
+        self._init_state()
+        self._last_action = np.full(self.max_entities, self.max_tasks, dtype=np.int64)
+        if self.arrival == "static":
+            self._place(np.arange(min(len(self.tasks.rows), self.max_tasks)), use_table_positions=True)
+        else:
+            self._arrive()
+        return self._obs(), self._info(0, 0.0, 0.0, 0, np.zeros(self.max_entities))
+
+    def set_bids(self, bids: np.ndarray) -> None:
+        """Post the entities' bids (their wage) for the next allocation (``bidding=True`` only).
+
+        :param bids: (n_entities,) or (max_entities,) non-negative bids, each at most ``bid_max``
+        """
+        if not self.bidding:
+            raise RuntimeError("set_bids() needs an environment built with bidding=True")
+        b = np.asarray(bids, dtype=np.float64).reshape(-1)
+        if b.shape[0] not in (self.n_entities, self.max_entities):
+            raise ValueError(f"bids must have shape ({self.n_entities},) or ({self.max_entities},), got {np.shape(bids)}")
+        if not np.all(np.isfinite(b)) or b.min(initial=0.0) < 0 or b.max(initial=0.0) > self.bid_max + EPS:
+            raise ValueError(f"bids must be finite and lie in [0, bid_max={self.bid_max}]")
+        self._bid[:] = 0.0
+        self._bid[: b.shape[0]] = b
+
+    # ------------------------------------------------------------ arrivals
+
+    def _free_slots(self) -> np.ndarray:
+        return np.flatnonzero(~self._occupied)
+
+    def _arrive(self) -> None:
+        if self.arrival == "reference":
+            free = self._free_slots()
+            rows = np.arange(self._next_ref, min(self._next_ref + len(free), len(self.tasks.rows)))
+            if self.tasks.towers is not None:  # a tower that is already a task waits for the next refill
+                busy_towers = set(self._tower[self._occupied].tolist())
+                keep = []
+                for r in rows:
+                    if int(self.tasks.towers[r]) in busy_towers:
+                        break
+                    busy_towers.add(int(self.tasks.towers[r]))
+                    keep.append(r)
+                rows = np.asarray(keep, dtype=np.int64)
+            self._next_ref += len(rows)
+            self._place(rows, use_table_positions=True)
+        elif self.arrival == "random":
+            rng = self.np_random
+            count = int(rng.integers(self.arrival_count[0], self.arrival_count[1] + 1))
+            count = min(count, len(self._free_slots()))
+            if self.tasks.towers is not None:  # EPT: a tower not already a task reaches its peak demand
+                eligible = self._alive.copy()
+                eligible[self._tower[self._occupied]] = False
+                candidates = np.flatnonzero(eligible)
+                count = min(count, max(len(candidates) - 1, 0))  # keep at least one tower as a supplier
+                towers = candidates[np.argsort(rng.random(len(candidates)))[:count]]
+                self._place(towers, use_table_positions=True)
+            else:
+                rows = rng.integers(0, len(self.tasks.rows), size=count)
+                self._place(rows, use_table_positions=False)
+
+    def _place(self, rows: np.ndarray, use_table_positions: bool) -> None:
+        """Put table rows ``rows`` into the lowest free slots."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if len(rows) == 0:
+            return
+        slots = self._free_slots()[: len(rows)]
+        rows = rows[: len(slots)]
+        table = self._task_rows[rows]
+        self._occupied[slots] = True
+        self._reward[slots] = table[:, 0]
+        self._base_demand[slots] = table[:, 1:]
+        self._demand[slots] = table[:, 1:]
+        self._age[slots] = 0
+        if self.tasks.towers is not None:
+            towers = self.tasks.towers[rows]
+            self._tower[slots] = towers
+            self._tpos[slots] = self._pos0[towers]
+        elif self.has_positions:
+            if use_table_positions and self.tasks.positions is not None:
+                self._tpos[slots] = self.tasks.positions[rows]
+            else:
+                assert self.grid_size is not None
+                self._tpos[slots] = self.np_random.integers(0, self.grid_size, size=(len(slots), 2))
+
+    # ------------------------------------------------------------- queries
+
+    def _distance(self) -> np.ndarray:
+        """(N, M) distance from every entity to every task slot (travel metric; Euclidean when there is no travel)."""
+        return cdist(self._pos, self._tpos, self._metric)
+
+    def _refresh(self) -> None:
+        """Recompute the derived quantities (distances, pair costs, remaining demand, masks) after a state change."""
+        committed = self._assigned >= 0
+        onehot = self._eye[self._assigned]  # (N, M); row -1 of the padded identity is zero for free entities
+        rem = np.maximum(self._demand - onehot.T @ self._supply, 0.0)  # empty slots have zero demand
+        free = self._alive & ~committed
+        if self.tasks.towers is not None:
+            free[self._tower[self._occupied]] = False  # a tower at peak demand cannot supply
+        base = self._bid if self.bidding else self._cost0
+        if self.has_positions:
+            dist = self._distance()
+            if self.tasks.towers is not None:  # EPT: distance × mean wire cost of the pair (B3 fixed: task tower's own)
+                cost = base[:, None] + dist * (0.5 * (self._wire[:, None] + self._wire[self._tower]))
+            else:
+                cost = base[:, None] + self.travel_cost * dist
+        else:
+            dist = None
+            cost = np.repeat(base[:, None], self.max_tasks, axis=1)
+        self._dist = dist
+        self._pc = cost
+        self._rem = rem
+        self._free = free
+        self._open = self._occupied & (rem > EPS).any(1)
+        self._open_ext = np.append(self._open, False)  # indexed by an action: "unassigned" (M) is never a task
+        self._committed = committed
+
+    def action_masks(self) -> np.ndarray:
+        """Flat (N·(M+1),) boolean mask in sb3-contrib's MultiDiscrete layout (used by MaskablePPO)."""
+        return self._action_mask(self._free, self._open).astype(bool)
+
+    def _action_mask(self, entity_mask: np.ndarray, task_mask: np.ndarray) -> np.ndarray:
+        m = np.empty((self.max_entities, self.max_tasks + 1), dtype=bool)
+        np.multiply.outer(entity_mask, task_mask, out=m[:, : self.max_tasks])
+        m[:, self.max_tasks] = True
+        return m.reshape(-1).view(np.int8)
+
+    def _obs(self) -> dict[str, np.ndarray]:
+        # Padded entities and empty slots hold zeros in every state array, so no masking is needed here.
+        self._refresh()
+        N, M, K = self.max_entities, self.max_tasks, self.K
+        f32 = np.float32
+        ef = np.empty((N, K + 5), dtype=f32)
+        ef[:, 0] = (self._bid if self.bidding else self._cost0) * self._alive
+        ef[:, 1 : 1 + K] = self._supply
+        ef[:, 1 + K : 3 + K] = self._pos
+        if self._dist is not None and self.travel != "none":
+            ef[:, 3 + K] = (self._dist[self._entity_index, self._assigned] + 1.0) * self._committed
+        else:
+            ef[:, 3 + K] = self._committed
+        ef[:, 4 + K] = self._bid
+        tf = np.empty((M, K + 4), dtype=f32)
+        tf[:, 0] = self._reward
+        tf[:, 1 : 1 + K] = self._rem
+        tf[:, 1 + K : 3 + K] = self._tpos
+        tf[:, 3 + K] = self._age
+        pc = self._pc * self._present0[:, None]
+        pc *= self._occupied
+        return {
+            "entity_features": ef,
+            "task_features": tf,
+            "entity_supply": self._supply.astype(f32),
+            "task_demand": tf[:, 1 : 1 + K].copy(),
+            "task_reward": tf[:, 0].copy(),
+            "pair_cost": pc.astype(f32),
+            "entity_mask": self._free.astype(np.int8),
+            "task_mask": self._open.astype(np.int8),
+            "action_mask": self._action_mask(self._free, self._open),
+        }
+
+    def _info(self, completed: int, rewards: float, costs: float, invalid: int, income: np.ndarray) -> dict[str, Any]:
+        return {
+            "completed_tasks": completed,
+            "task_reward_total": rewards,
+            "cost_total": costs,
+            "invalid_assignments": invalid,
+            "entity_income": income,
+        }
+
+    # ----------------------------------------------------------------- step
+
+    def _validate_action(self, action: Any) -> np.ndarray:
+        a = np.asarray(action)
+        N, M = self.max_entities, self.max_tasks
+        if a.shape != (N,):
+            if a.size != N:
+                raise ValueError(f"action must have shape ({N},) (one task slot per entity), got shape {a.shape}")
+            a = a.reshape(N)
+        if a.dtype.kind == "f":
+            if not np.all(np.isfinite(a)):
+                raise ValueError("action contains NaN or infinite values; expected integers in [0, max_tasks]")
+            if not np.all(a == np.round(a)):
+                raise ValueError("action contains non-integer values; expected integers in [0, max_tasks]")
+            a = a.astype(np.int64)
+        elif a.dtype.kind not in "iub":
+            raise ValueError(f"action must be an integer array, got dtype {a.dtype}")
+        lo, hi = a.min(), a.max()
+        if lo < 0 or hi > M:
+            raise ValueError(f"action values must lie in [0, {M}] (M = {M} means 'unassigned'), got [{lo}, {hi}]")
+        return a
+
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        if not self._state_ready:
+            raise RuntimeError("call reset() before step()")
+        a = self._validate_action(action)
+        M = self.max_tasks
+        chosen = a < M
+        valid = chosen & self._free & self._open_ext[a]
+        n_invalid = int(np.count_nonzero(chosen) - np.count_nonzero(valid))
+        if n_invalid and self.strict:
+            bad = np.flatnonzero(chosen & ~valid)
+            raise ValueError(f"assignments of entities {bad.tolist()} violate the action mask (strict=True)")
+        self._last_action = np.where(valid, a, M)
+
+        # Commit: the pair cost is fixed when the entity is assigned (DESIGN §3 pair_cost).
+        idx = np.flatnonzero(valid)
+        if idx.size:
+            self._assigned[idx] = a[idx]
+            self._charge[idx] = self._pc[idx, a[idx]]
+        committed = self._assigned >= 0
+
+        # Entities at their task's cell work; the others move one cell towards it.
+        if self.travel != "none":
+            delta = self._tpos[self._assigned] - self._pos
+            arrived = committed & ~delta.any(1)
+            move = np.sign(delta)
+            if self.travel == "manhattan":  # 4-neighbour: align y first, then x
+                move[:, 0] *= move[:, 1] == 0
+            move *= committed[:, None]
+            self._pos += move
+            working = np.where(arrived, self._assigned, -1)
+        else:
+            working = self._assigned
+        onehot = self._eye[working]
+        contrib = onehot.T @ self._supply
+        complete = self._occupied & (contrib >= self._demand - EPS).all(1) & onehot.any(0)
+
+        rewards = costs = 0.0
+        n_complete = 0
+        income = np.zeros(self.max_entities)
+        if complete.any():
+            team = committed & complete[self._assigned]
+            income = self._charge * team
+            rewards = float(self._reward @ complete)
+            costs = float(income.sum())
+            n_complete = int(complete.sum())
+            # Release the teams (used up when `consume`), free the slots, give EPT's task towers back (B6 fixed).
+            if self.consume:
+                self._alive &= ~team
+                self._supply[team] = 0.0
+            self._assigned[team] = -1
+            self._charge[team] = 0.0
+            self._occupied &= ~complete
+            keep = ~complete
+            self._reward *= keep
+            self._demand *= keep[:, None]
+            self._base_demand *= keep[:, None]
+            self._tpos *= keep[:, None]
+            self._age *= keep
+            self._tower[complete] = -1
+        if not self.busy:  # never busy: assignments last one step
+            self._assigned[:] = -1
+            self._charge[:] = 0.0
+
+        # Decay (reward and demand × ρ once older than θ; positions untouched, B5/B8 fixed) and changing demand.
+        self._age += self._occupied
+        if self.decay < 1.0:
+            factor = np.where(self._age > self.decay_after, self.decay, 1.0)
+            self._reward *= factor
+            self._base_demand *= factor[:, None]
+        if self.demand_noise > 0:
+            noise = self.np_random.uniform(1 - self.demand_noise, 1 + self.demand_noise, size=(M, 1))
+            np.multiply(self._base_demand, noise, out=self._demand)
+        else:
+            self._demand[:] = self._base_demand
+
+        self._t += 1
+        if self.arrival != "static" and self._t % self.arrival_period == 0:
+            self._arrive()
+
+        terminated = self.one_step or not self._alive.any()
+        if self.arrival != "random":
+            exhausted = self.arrival == "static" or self._next_ref >= len(self.tasks.rows)
+            terminated = terminated or (exhausted and not self._occupied.any())
+        return self._obs(), rewards - costs, bool(terminated), False, self._info(n_complete, rewards, costs, n_invalid, income)
+
+    # ------------------------------------------------------------ copying
+
+    _SHARED: ClassVar[tuple[str, ...]] = (
+        "entities",
+        "tasks",
+        "observation_space",
+        "action_space",
+        "_cost0",
+        "_supply0",
+        "_pos0",
+        "_wire",
+        "_present0",
+        "_eye",
+        "_task_rows",
+        "_metric",
+        "_entity_index",
+        "metadata",
+        "spec",
+    )
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> TaskAllocEnv:
+        """Fast clone for planners: static tables and spaces are shared, the episode state is copied."""
+        new = self.__class__.__new__(self.__class__)
+        memo[id(self)] = new
+        for key, value in self.__dict__.items():
+            if key in self._SHARED:
+                new.__dict__[key] = value
+            elif isinstance(value, np.ndarray):
+                new.__dict__[key] = value.copy()
+            elif key == "_np_random" and value is not None:
+                rng = np.random.Generator(type(value.bit_generator)())
+                rng.bit_generator.state = value.bit_generator.state
+                new.__dict__[key] = rng
+            else:
+                new.__dict__[key] = copy.deepcopy(value, memo)
+        return new
+
+    # ---------------------------------------------------------- rendering
+
+    def render(self) -> np.ndarray | str | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'ansi'")
+            return None
+        from envs.rendering import render_ansi, render_rgb
+
+        if self.render_mode == "ansi":
+            return render_ansi(self)
+        return render_rgb(self)

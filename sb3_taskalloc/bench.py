@@ -1,0 +1,122 @@
+"""Benchmarks (DESIGN §10): ``python -m sb3_taskalloc.bench {envs,policy,train,all} [--out DIR]``.
+
+Each benchmark prints a table and writes ``<out>/bench_<name>.json`` with the figures, the machine and the command.
+Figures are measured with one thread (``OMP_NUM_THREADS=1``, ``torch.set_num_threads(1)``) unless stated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np
+
+BenchFn = Callable[[argparse.Namespace], list[dict[str, Any]]]
+
+
+def _machine() -> dict[str, Any]:
+    return {
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "numpy": np.__version__,
+    }
+
+
+def bench_envs(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Env steps/s with random valid allocations (one thread, unwrapped and as made by ``gym.make``) and deepcopy time."""
+    import gymnasium as gym
+
+    import envs
+    from envs.rendering import random_valid_action
+
+    targets = {"TaskAlloc/RBF-v0": 5000, "TaskAlloc/MT-v0": 5000, "TaskAlloc/EPT-v0": 10000}
+    rows = []
+    for env_id in envs.ENV_SPECS:
+        if args.quick and env_id not in targets and "Almighty" not in env_id:
+            continue
+        result: dict[str, Any] = {"env": env_id}
+        for label, wrapped in (("steps_per_s", False), ("steps_per_s_gym_make", True)):
+            env: Any = gym.make(env_id) if wrapped else gym.make(env_id).unwrapped
+            rng = np.random.default_rng(0)
+            obs, _ = env.reset(seed=0)
+            n, t0 = 0, time.perf_counter()
+            budget = 0.5 if args.quick else 2.0
+            while time.perf_counter() - t0 < budget:
+                obs, _, term, trunc, _ = env.step(random_valid_action(obs, rng))
+                n += 1
+                if term or trunc or (not wrapped and env._t >= envs.ENV_SPECS[env_id][2]):
+                    obs, _ = env.reset()
+            result[label] = n / (time.perf_counter() - t0)
+        base: Any = gym.make(env_id).unwrapped
+        obs, _ = base.reset(seed=0)
+        for _ in range(10):
+            obs, *_ = base.step(random_valid_action(obs, np.random.default_rng(1)))
+        reps = 2000
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            copy.deepcopy(base)
+        result["deepcopy_ms"] = (time.perf_counter() - t0) / reps * 1e3
+        result["entities"] = base.n_entities
+        result["target_steps_per_s"] = targets.get(env_id)
+        rows.append(result)
+    return rows
+
+
+BENCHES: dict[str, BenchFn] = {"envs": bench_envs}
+
+
+def _print_table(name: str, rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        return
+    keys = list(rows[0])
+    print(f"\n## {name}")
+    print("| " + " | ".join(keys) + " |")
+    print("|" + "---|" * len(keys))
+    for row in rows:
+        cells = [
+            f"{v:,.3g}" if isinstance(v, float) and abs(v) < 100 else f"{v:,.0f}" if isinstance(v, float) else str(v)
+            for v in row.values()
+        ]
+        print("| " + " | ".join(cells) + " |")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.bench", description=__doc__)
+    parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
+    parser.add_argument("--out", default="bench_out", help="folder for the JSON results")
+    parser.add_argument("--quick", action="store_true", help="shorter timings (smoke runs)")
+    parser.add_argument("--device", default="cpu", help="torch device for the policy benchmarks (cpu, cuda, auto)")
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    names = list(BENCHES) if args.which == "all" else [args.which]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        rows = BENCHES[name](args)
+        _print_table(name, rows)
+        record = {
+            "benchmark": name,
+            "command": "python -m sb3_taskalloc.bench " + " ".join(sys.argv[1:] if argv is None else argv),
+            "machine": _machine(),
+            "torch_threads": torch.get_num_threads(),
+            "results": rows,
+        }
+        (out / f"bench_{name}.json").write_text(json.dumps(record, indent=2))
+        print(f"wrote {out / f'bench_{name}.json'}")
+
+
+if __name__ == "__main__":
+    main()
