@@ -1,0 +1,120 @@
+"""Replay buffer of TwoStageSAC: observations plus the two-stage decision (DESIGN §5).
+
+Besides SB3's Dict replay data it stores, per transition, the candidate sets of the pre-assignment
+(``candidates[j, i]``: entity i was a candidate of task j when j was decoded) and the pick order of the select stage
+(``pick_rank[j, i]``: step at which task j picked entity i, −1 if not picked). The environment action is derived
+from them and stored as SB3 does.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import DictReplayBuffer
+from stable_baselines3.common.vec_env import VecNormalize
+
+
+class TwoStageReplayBufferSamples(NamedTuple):
+    observations: dict[str, th.Tensor]
+    actions: th.Tensor  # (B, N) env action
+    next_observations: dict[str, th.Tensor]
+    dones: th.Tensor  # (B, 1)
+    rewards: th.Tensor  # (B, 1)
+    candidates: th.Tensor  # (B, M, N) bool
+    pick_rank: th.Tensor  # (B, M, N) long, −1 = not picked
+
+
+def pack_decision(env_action: np.ndarray, candidates: np.ndarray, pick_rank: np.ndarray) -> np.ndarray:
+    """Pack (n_envs, N) env actions, (n_envs, M, N) candidates and pick ranks into one (n_envs, N + 2·M·N) array,
+    the ``buffer_action`` that SB3's ``collect_rollouts`` hands to :meth:`TwoStageReplayBuffer.add`."""
+    n = env_action.shape[0]
+    return np.concatenate(
+        [env_action.reshape(n, -1), candidates.reshape(n, -1).astype(np.int64), pick_rank.reshape(n, -1)], axis=1
+    ).astype(np.int64)
+
+
+def unpack_decision(packed: np.ndarray, n_entities: int, n_tasks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`pack_decision`."""
+    n = packed.shape[0]
+    N, M = n_entities, n_tasks
+    if packed.shape[1] != N + 2 * M * N:
+        raise ValueError(f"packed decision must have {N + 2 * M * N} columns for N={N}, M={M}, got {packed.shape[1]}")
+    action = packed[:, :N]
+    cand = packed[:, N : N + M * N].reshape(n, M, N).astype(bool)
+    rank = packed[:, N + M * N :].reshape(n, M, N)
+    return action, cand, rank
+
+
+class TwoStageReplayBuffer(DictReplayBuffer):
+    """Dict replay buffer that also keeps the two-stage decision of each transition.
+
+    :param buffer_size: max number of transitions
+    :param observation_space: the env's Dict observation space (DESIGN §3)
+    :param action_space: the env's MultiDiscrete action space
+    :param device: torch device of the sampled tensors
+    :param n_envs: number of parallel envs
+    :param optimize_memory_usage: not supported (Dict observations)
+    :param handle_timeout_termination: treat time-limit truncation as non-terminal (SB3 semantics)
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+    ) -> None:
+        super().__init__(
+            buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage, handle_timeout_termination
+        )
+        self.n_entities = int(observation_space["entity_mask"].shape[0])  # type: ignore[index]
+        self.n_tasks = int(observation_space["task_mask"].shape[0])  # type: ignore[index]
+        N, M = self.n_entities, self.n_tasks
+        index_dtype = np.int16 if N < 2**15 else np.int32
+        self.actions = np.zeros((self.buffer_size, self.n_envs, N), dtype=index_dtype)
+        self.candidates = np.zeros((self.buffer_size, self.n_envs, M, N), dtype=bool)
+        self.pick_rank = np.full((self.buffer_size, self.n_envs, M, N), -1, dtype=index_dtype)
+
+    def add(  # type: ignore[override]
+        self,
+        obs: dict[str, np.ndarray],
+        next_obs: dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        env_action, cand, rank = unpack_decision(np.asarray(action).reshape(self.n_envs, -1), self.n_entities, self.n_tasks)
+        self.candidates[self.pos] = cand
+        self.pick_rank[self.pos] = rank
+        super().add(obs, next_obs, env_action, reward, done, infos)
+
+    def _get_samples(  # type: ignore[override]
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None
+    ) -> TwoStageReplayBufferSamples:
+        env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
+        obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.observations.items()}
+        next_obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.next_observations.items()}
+        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
+        return TwoStageReplayBufferSamples(
+            observations=obs,
+            actions=th.as_tensor(self.actions[batch_inds, env_indices].astype(np.int64), device=self.device),
+            next_observations=next_obs,
+            dones=self.to_torch(dones).reshape(-1, 1),
+            rewards=self.to_torch(self.rewards[batch_inds, env_indices]).reshape(-1, 1),
+            candidates=th.as_tensor(self.candidates[batch_inds, env_indices], device=self.device),
+            pick_rank=th.as_tensor(self.pick_rank[batch_inds, env_indices].astype(np.int64), device=self.device),
+        )
+
+    def nbytes_per_transition(self) -> int:
+        """Bytes stored per transition (observations, next observations, decision, reward, flags)."""
+        total = sum(v.nbytes for v in self.observations.values()) + sum(v.nbytes for v in self.next_observations.values())
+        total += self.actions.nbytes + self.candidates.nbytes + self.pick_rank.nbytes
+        total += self.rewards.nbytes + self.dones.nbytes + self.timeouts.nbytes
+        return total // (self.buffer_size * self.n_envs)

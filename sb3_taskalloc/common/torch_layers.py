@@ -1,0 +1,360 @@
+"""Networks of the two-stage method: TAM encoder, pair features, AMIX mixer, pointer head (DESIGN §5).
+
+All modules take padded, masked batches and never produce NaN for all-masked rows.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch as th
+from torch import nn
+
+#: Large negative logit used instead of -inf inside attention (keeps all-masked rows finite).
+NEG = -1e9
+
+
+def symlog(x: th.Tensor) -> th.Tensor:
+    """sign(x)·log(1 + |x|): scale-robust input normalisation (no statistics, size-agnostic)."""
+    return th.sign(x) * th.log1p(th.abs(x))
+
+
+def mlp(in_dim: int, hidden: int, out_dim: int, activation_fn: type[nn.Module] = nn.ReLU, n_hidden: int = 1) -> nn.Sequential:
+    """``in → hidden (→ hidden …) → out`` with ``activation_fn`` between layers (the paper's 2-layer MLPs by default)."""
+    layers: list[nn.Module] = [nn.Linear(in_dim, hidden), activation_fn()]
+    for _ in range(n_hidden - 1):
+        layers += [nn.Linear(hidden, hidden), activation_fn()]
+    layers.append(nn.Linear(hidden, out_dim))
+    return nn.Sequential(*layers)
+
+
+class ObsView(NamedTuple):
+    """Typed view of a batch of observations (DESIGN §3), with normalised features and boolean masks."""
+
+    entity: th.Tensor  # (B, N, Fe) symlog features
+    task: th.Tensor  # (B, M, Ft) symlog features
+    supply: th.Tensor  # (B, N, K)
+    demand: th.Tensor  # (B, M, K)
+    reward: th.Tensor  # (B, M)
+    pair_cost: th.Tensor  # (B, N, M)
+    entity_mask: th.Tensor  # (B, N) bool: free
+    task_mask: th.Tensor  # (B, M) bool: open
+    present: th.Tensor  # (B, N) bool: entity exists (free or busy)
+    pair: th.Tensor  # (B, N, M, 3) pair features (see :func:`pair_features`)
+
+    @property
+    def valid(self) -> th.Tensor:
+        """(B, N, M) bool: entity i may be assigned to task j."""
+        return self.entity_mask.unsqueeze(-1) & self.task_mask.unsqueeze(1)
+
+    @property
+    def assignable(self) -> th.Tensor:
+        """(B, N) bool: free entities that have at least one open task."""
+        return self.entity_mask & self.task_mask.any(-1, keepdim=True)
+
+
+def parse_obs(obs: dict[str, th.Tensor]) -> ObsView:
+    """Build an :class:`ObsView` from an observation dict of tensors (batch first)."""
+    ent = obs["entity_features"].float()
+    supply, demand = obs["entity_supply"].float(), obs["task_demand"].float()
+    reward, pc = obs["task_reward"].float(), obs["pair_cost"].float()
+    pair = th.stack([symlog(pc), coverage(supply, demand), symlog(reward.unsqueeze(1) - pc)], dim=-1)
+    return ObsView(
+        entity=symlog(ent),
+        task=symlog(obs["task_features"].float()),
+        supply=supply,
+        demand=demand,
+        reward=reward,
+        pair_cost=pc,
+        entity_mask=obs["entity_mask"].bool(),
+        task_mask=obs["task_mask"].bool(),
+        present=(ent.abs().sum(-1) > 0) | obs["entity_mask"].bool(),
+        pair=pair,
+    )
+
+
+def coverage(supply: th.Tensor, demand: th.Tensor) -> th.Tensor:
+    """(B, N, M) share of task j's remaining demand that entity i alone covers: Σ_k min(s_ik, d_jk) / Σ_k d_jk."""
+    covered = th.minimum(supply.unsqueeze(2), demand.unsqueeze(1)).sum(-1)
+    return covered / demand.sum(-1).unsqueeze(1).clamp_min(1e-6)
+
+
+class MaskedSelfAttention(nn.Module):
+    """One pre-norm residual self-attention block over padded tokens (keys restricted to ``mask``)."""
+
+    def __init__(self, dim: int, n_heads: int = 4) -> None:
+        super().__init__()
+        self.n_heads = n_heads
+        self.norm = nn.LayerNorm(dim)
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.out = nn.Linear(dim, dim)
+        self.ff = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, dim))
+
+    def forward(self, x: th.Tensor, mask: th.Tensor) -> th.Tensor:
+        B, L, D = x.shape
+        h = self.n_heads
+        q, k, v = self.qkv(self.norm(x)).view(B, L, 3, h, D // h).permute(2, 0, 3, 1, 4)
+        scores = q @ k.transpose(-1, -2) / math.sqrt(D // h)
+        scores = scores.masked_fill(~mask[:, None, None, :], NEG)
+        att = th.softmax(scores, dim=-1) @ v
+        x = x + self.out(att.transpose(1, 2).reshape(B, L, D))
+        return x + self.ff(x)
+
+
+class TAMEncoder(nn.Module):
+    """Two-head attention module encoder: entity embeddings h_i = f_h(e_i), task embeddings g_j = f_g(t_j)
+    (paper Eq. for TAM), optionally refined by self-attention blocks over entity and task tokens.
+
+    :param entity_dim: entity feature size Fe
+    :param task_dim: task feature size Ft
+    :param hidden_dim: embedding size d (paper: 64)
+    :param n_attention_layers: self-attention blocks over entity tokens and over task tokens (0: plain MLPs)
+    :param activation_fn: activation of the MLPs
+    """
+
+    def __init__(
+        self,
+        entity_dim: int,
+        task_dim: int,
+        hidden_dim: int = 64,
+        n_attention_layers: int = 0,
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__()
+        self.f_h = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
+        self.f_g = mlp(task_dim, hidden_dim, hidden_dim, activation_fn)
+        self.entity_blocks = nn.ModuleList(MaskedSelfAttention(hidden_dim) for _ in range(n_attention_layers))
+        self.task_blocks = nn.ModuleList(MaskedSelfAttention(hidden_dim) for _ in range(n_attention_layers))
+
+    def forward(self, view: ObsView) -> tuple[th.Tensor, th.Tensor]:
+        h = self.f_h(view.entity)
+        g = self.f_g(view.task)
+        for block in self.entity_blocks:
+            h = block(h, view.present)
+        for block in self.task_blocks:
+            g = block(g, view.task_mask)
+        return h, g
+
+
+class PairScorer(nn.Module):
+    """Pairwise score s_ij = h_i·g_j / scale + φ(pair_ij): the TAM dot product (paper: /√d for the actor) plus an
+    optional learned term of the pair features (pair cost, coverage, reward − cost).
+
+    :param entity_dim: entity feature size
+    :param task_dim: task feature size
+    :param hidden_dim: embedding size d
+    :param scale: divisor of the dot product (√d for the actor, 1 for the critic, reference spec B20)
+    :param pair_features: add φ(symlog pair cost, coverage share, symlog(task reward − pair cost)) (``ObsView.pair``)
+    :param n_attention_layers: see :class:`TAMEncoder`
+    :param activation_fn: activation of the MLPs
+    """
+
+    def __init__(
+        self,
+        entity_dim: int,
+        task_dim: int,
+        hidden_dim: int = 64,
+        scale: float = 1.0,
+        pair_features: bool = True,
+        n_attention_layers: int = 0,
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__()
+        self.encoder = TAMEncoder(entity_dim, task_dim, hidden_dim, n_attention_layers, activation_fn)
+        self.scale = scale
+        self.pair = mlp(3, 16, 1, activation_fn) if pair_features else None
+
+    def forward(self, view: ObsView) -> th.Tensor:
+        h, g = self.encoder(view)
+        scores = h @ g.transpose(1, 2) / self.scale
+        if self.pair is not None:
+            scores = scores + self.pair(view.pair).squeeze(-1)
+        return scores
+
+
+class FlatScorer(nn.Module):
+    """The "W/o TAM" ablation: one MLP over the flattened padded inputs → N·M scores. Size-specific.
+
+    :param n_entities: padded entity count N
+    :param n_tasks: padded task count M
+    :param entity_dim: entity feature size
+    :param task_dim: task feature size
+    :param hidden_dim: hidden width
+    :param activation_fn: activation
+    """
+
+    size_agnostic = False
+
+    def __init__(
+        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
+    ) -> None:
+        super().__init__()
+        self.n_entities, self.n_tasks = n_entities, n_tasks
+        in_dim = n_entities * entity_dim + n_tasks * task_dim + n_entities * n_tasks
+        self.net = mlp(in_dim, hidden_dim, n_entities * n_tasks, activation_fn)
+
+    def forward(self, view: ObsView) -> th.Tensor:
+        B, N, _ = view.entity.shape
+        M = view.task.shape[1]
+        if (self.n_entities, self.n_tasks) != (N, M):
+            raise ValueError(
+                f'encoder="mlp" is size-specific: built for {self.n_entities} entities × {self.n_tasks} tasks, got {N} × {M}; '
+                'use the size-agnostic TAM encoder (encoder="tam") to transfer across sizes'
+            )
+        x = th.cat([view.entity.flatten(1), view.task.flatten(1), symlog(view.pair_cost).flatten(1)], dim=1)
+        return self.net(x).view(B, N, M)
+
+
+class AMIXMixer(nn.Module):
+    """Attention-hypernetwork mixer (AMIX with its self-attention hypernetwork SHN).
+
+    SHN: X = entity features ⊙ free mask; K = k(X), Q = q(X) (linear, ``attention_dim``), V = v(X) (linear; the
+    published code used 2-layer MLPs, linear maps keep the mixer cheap for hundreds of entities); A = softmax(K Qᵀ / √d) over free entities;
+    one weight vector per entity w_i = (A V)_i. Hyper-bias b = MLP(mean of present entities' features, mean of open
+    tasks' features) gives the state value when no entity is free. hidden = ReLU(Σ_i Q_i w_i + b),
+    Q_tot = MLP(hidden). Masked entities contribute nothing. ``monotonic``: |w_i| and a non-negative output layer
+    (QMIX-style monotonic mixing).
+
+    :param entity_dim: entity feature size
+    :param task_dim: task feature size
+    :param hidden_dim: hypernetwork width
+    :param monotonic: constrain ∂Q_tot/∂Q_i ≥ 0
+    :param hyper_bias: state-dependent bias (else a learned constant)
+    :param activation_fn: activation
+    """
+
+    size_agnostic = True
+
+    def __init__(
+        self,
+        entity_dim: int,
+        task_dim: int,
+        hidden_dim: int = 64,
+        monotonic: bool = False,
+        hyper_bias: bool = True,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        attention_dim: int = 16,
+    ) -> None:
+        super().__init__()
+        self.k = nn.Linear(entity_dim, attention_dim)
+        self.q = nn.Linear(entity_dim, attention_dim)
+        self.v = nn.Linear(entity_dim, hidden_dim)
+        self.attention_dim = attention_dim
+        self.monotonic = monotonic
+        self.bias: nn.Module | None = mlp(entity_dim + task_dim, hidden_dim, hidden_dim, activation_fn) if hyper_bias else None
+        self.const_bias = nn.Parameter(th.zeros(hidden_dim))
+        if monotonic:
+            self.out_w = nn.Parameter(th.rand(hidden_dim) / hidden_dim)
+            self.out_b = nn.Parameter(th.zeros(1))
+        else:
+            self.out = mlp(hidden_dim, hidden_dim, 1, activation_fn)
+
+    def forward(self, q_i: th.Tensor, view: ObsView) -> th.Tensor:
+        """:param q_i: (B, N) per-entity values; :return: (B,) Q_tot"""
+        mask = view.assignable
+        x = view.entity * mask.unsqueeze(-1)
+        k, q, v = self.k(x), self.q(x), self.v(x)
+        scores = (k @ q.transpose(1, 2)) / math.sqrt(self.attention_dim)
+        att = th.softmax(scores.masked_fill(~mask.unsqueeze(1), NEG), dim=-1)
+        q_i = (q_i * mask).unsqueeze(1)  # (B, 1, N)
+        if self.monotonic:
+            w = (att @ v).abs()  # (B, N, H): one hyper-weight vector per entity
+            mixed = (q_i @ w).squeeze(1)
+        else:
+            mixed = ((q_i @ att) @ v).squeeze(1)  # Σ_i Q_i (A V)_i computed as (Qᵀ A) V: O(N²) instead of O(N²H)
+        bias = self.const_bias
+        if self.bias is not None:
+            pres = view.present.unsqueeze(-1).float()
+            tmask = view.task_mask.unsqueeze(-1).float()
+            ent_mean = (view.entity * pres).sum(1) / pres.sum(1).clamp_min(1)
+            task_mean = (view.task * tmask).sum(1) / tmask.sum(1).clamp_min(1)
+            bias = bias + self.bias(th.cat([ent_mean, task_mean], -1))
+        hidden = th.relu(mixed + bias)
+        if self.monotonic:
+            return hidden @ self.out_w.abs() + self.out_b
+        return self.out(hidden).squeeze(-1)
+
+
+class GlobalMixer(nn.Module):
+    """The "W/o AMIX" ablation: one MLP over flattened tasks, entities and the (one-hot or expected) assignment.
+    Size-specific.
+
+    :param n_entities: padded entity count N
+    :param n_tasks: padded task count M
+    :param entity_dim: entity feature size
+    :param task_dim: task feature size
+    :param hidden_dim: hidden width
+    :param activation_fn: activation
+    """
+
+    size_agnostic = False
+
+    def __init__(
+        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
+    ) -> None:
+        super().__init__()
+        self.n_entities, self.n_tasks = n_entities, n_tasks
+        in_dim = n_entities * entity_dim + n_tasks * task_dim + n_entities * n_tasks
+        self.net = mlp(in_dim, hidden_dim, 1, activation_fn)
+
+    def forward(self, assign: th.Tensor, view: ObsView) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot pre-assignment or assignment probabilities; :return: (B,)"""
+        B, N, M = assign.shape
+        if (self.n_entities, self.n_tasks) != (N, M):
+            raise ValueError(
+                f'mixer="global" is size-specific: built for {self.n_entities} entities × {self.n_tasks} tasks, got {N} × {M}'
+            )
+        x = th.cat([view.task.flatten(1), view.entity.flatten(1), assign.flatten(1)], dim=1)
+        return self.net(x).squeeze(-1)
+
+
+#: Size of the per-step task state of the select stage (remaining demand K + 4 scalars).
+SELECT_TASK_EXTRA = 4
+#: Size of the per-step dynamic entity features of the select stage.
+SELECT_DYN = 4
+
+
+class PointerHead(nn.Module):
+    """Pointer scores of the select stage for the candidates of each task.
+
+    u_i = d_i·e_j^t / √d + φ(x_i^t) (+ b(e_j^t) for a critic), where e_j^t encodes task j's state after t picks
+    (remaining demand, reward, cost so far, number of picks), d_i the entity and x_i^t its dynamic pair features with
+    task j (coverage of the remaining demand, pair cost, margin, waste). This dot-product pointer replaces the paper's
+    additive vᵀ tanh(W1 e + W2 d): it needs no (batch × entities × hidden) tensor per decoding step, which makes
+    training an order of magnitude cheaper on CPUs.
+
+    :param entity_dim: entity feature size
+    :param n_resources: K
+    :param hidden_dim: width d
+    :param activation_fn: MLP activation
+    :param state_value: add a per-task baseline b(e_j^t) (used by the select critics)
+    """
+
+    def __init__(
+        self,
+        entity_dim: int,
+        n_resources: int,
+        hidden_dim: int = 64,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        state_value: bool = False,
+    ) -> None:
+        super().__init__()
+        self.entity = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
+        self.task = mlp(n_resources + SELECT_TASK_EXTRA, hidden_dim, hidden_dim, activation_fn)
+        self.dyn = mlp(SELECT_DYN, 16, 1, activation_fn)
+        self.value = nn.Linear(hidden_dim, 1) if state_value else None
+        self.scale = math.sqrt(hidden_dim)
+
+    def embed_entities(self, view: ObsView) -> th.Tensor:
+        return self.entity(view.entity)
+
+    def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, own: th.Tensor) -> th.Tensor:
+        """:param d: (B, N, H) entity embeddings; :param task_state: (B, M, S); :param dyn: (B, N, SELECT_DYN);
+        :param own: (B, N, M) float one-hot of the task whose decoding entity i takes part in (zero row: none)
+        :return: (B, N) scores"""
+        e = self.task(task_state)
+        scores = ((d @ e.transpose(-1, -2)) * own).sum(-1) / self.scale + self.dyn(dyn).squeeze(-1)
+        if self.value is not None:
+            scores = scores + (own @ self.value(e)).squeeze(-1)
+        return scores

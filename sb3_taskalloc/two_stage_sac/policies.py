@@ -1,0 +1,481 @@
+"""Policies of TwoStageSAC: the TAM pre-assign actor, twin AMIX critics and the pointer select head (DESIGN §5)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal, NamedTuple
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.torch_layers import (
+    AMIXMixer,
+    FlatScorer,
+    GlobalMixer,
+    ObsView,
+    PairScorer,
+    PointerHead,
+    parse_obs,
+    symlog,
+)
+
+#: A task counts as covered (internally) when every remaining demand is at most this (the env's tolerance is larger).
+COVER_TOL = 1e-5
+
+
+class Decision(NamedTuple):
+    """One two-stage decision for a batch of observations."""
+
+    env_action: th.Tensor  # (B, N) task slot per entity, M = unassigned
+    candidates: th.Tensor  # (B, M, N) bool: entity i was a candidate of task j
+    pick_rank: th.Tensor  # (B, M, N) long: step at which task j picked entity i, −1 if not
+    kept: th.Tensor  # (B, M) bool: task covered with positive internal profit
+
+
+class SelectState:
+    """State of the select stage for every task of every batch row (paper Algorithm 1, stage 2).
+
+    Each entity takes part in the decoding of at most one task (``task_of``), so all tasks of all rows decode in
+    parallel: the per-task state is the remaining demand (dropping by each pick's supply, clipped at 0), the cost
+    of the picks so far and the number of picks.
+
+    :param view: the observations
+    :param task_of: (B, N) task whose candidate entity i is in this round (−1: none)
+    """
+
+    def __init__(self, view: ObsView, task_of: th.Tensor) -> None:
+        B, N = task_of.shape
+        M = view.task_mask.shape[1]
+        self.view = view
+        self.task_of = task_of
+        self.slots = th.arange(M, device=task_of.device)
+        self.seg = task_of.unsqueeze(1) == self.slots.view(1, M, 1)  # (B, M, N) candidates of task j
+        self.own = self.seg.transpose(1, 2).float()  # (B, N, M) one-hot of each entity's task
+        self.avail = task_of >= 0  # (B, N) candidates not picked yet
+        self.rem = view.demand.clone()
+        self.cost = th.zeros(B, M, device=task_of.device)
+        self.npick = th.zeros(B, M, device=task_of.device)
+        self.covered = th.zeros(B, M, dtype=th.bool, device=task_of.device)
+        self.active = self.seg.any(-1) & view.task_mask
+        self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
+        self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
+
+    def features(self) -> tuple[th.Tensor, th.Tensor]:
+        """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
+        return select_features(self.view, self.own, self.pc_own, self.rem, self.cost, self.npick)
+
+    def choice_mask(self) -> th.Tensor:
+        """(B, M, N) entities task j may pick now."""
+        return self.seg & self.avail.unsqueeze(1) & self.active.unsqueeze(-1)
+
+    def advance(self, picks: th.Tensor, valid: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Apply one pick per task. :param picks: (B, M) entity index; :param valid: (B, M) rows that pick.
+        :return: select-stage reward (−pair cost, + task reward on covering) and done flags, both (B, M)."""
+        v = self.view
+        vf = valid.float()
+        pc = th.gather(v.pair_cost, 1, picks.unsqueeze(1)).squeeze(1)  # (B, M): pair_cost[b, picks[b, j], j]
+        sup = th.gather(v.supply, 1, picks.unsqueeze(-1).expand(-1, -1, v.supply.shape[-1]))  # (B, M, K)
+        rem = th.where(valid.unsqueeze(-1), (self.rem - sup).clamp_min(0.0), self.rem)
+        newly = valid & (rem <= COVER_TOL).all(-1)
+        reward = vf * (-pc + v.reward * newly.float())
+        self.rem = rem
+        self.cost = self.cost + vf * pc
+        self.npick = self.npick + vf
+        self.covered = self.covered | newly
+        picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
+        self.avail = self.avail & ~picked
+        left = (self.seg & self.avail.unsqueeze(1)).any(-1)
+        done = valid & (newly | ~left)
+        self.active = self.active & ~done
+        return reward, done
+
+    def kept(self) -> th.Tensor:
+        """(B, M) tasks whose internal profit (reward if covered − Σ pair costs) is positive; others are abandoned."""
+        return self.covered & (self.view.reward - self.cost > 0)
+
+
+def select_features(
+    view: ObsView, own: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor, npick: th.Tensor
+) -> tuple[th.Tensor, th.Tensor]:
+    """Inputs of the pointer heads for one or many (leading dims) select-stage states.
+
+    :param view: observations (B, ...)
+    :param own: (B, N, M) one-hot of the task each entity is a candidate of
+    :param pc_own: (B, N) pair cost of each entity for that task
+    :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
+    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 4): coverage of the remaining
+        demand, symlog pair cost, symlog margin (reward − cost so far − pair cost), waste share of the supply
+    """
+    demand_sum = view.demand.sum(-1).clamp_min(1e-6)
+    reward = view.reward.expand_as(cost)
+    task_state = th.cat(
+        [
+            symlog(rem),
+            symlog(reward).unsqueeze(-1),
+            symlog(cost).unsqueeze(-1),
+            symlog(npick).unsqueeze(-1),
+            (rem.sum(-1) / demand_sum).unsqueeze(-1),
+        ],
+        dim=-1,
+    )
+    rem_i = own @ rem  # (..., B, N, K): remaining demand of each entity's task
+    useful = th.minimum(view.supply, rem_i).sum(-1)
+    cov = useful / rem_i.sum(-1).clamp_min(1e-6)
+    waste = 1.0 - useful / view.supply.sum(-1).clamp_min(1e-6)
+    margin = (own @ (reward - cost).unsqueeze(-1)).squeeze(-1) - pc_own
+    dyn = th.stack([cov, symlog(pc_own).expand_as(cov), symlog(margin), waste], dim=-1)
+    return task_state, dyn
+
+
+class PreAssignActor(nn.Module):
+    """π_i(j|s) = softmax over open tasks of h_i·g_j/√d (+ pair term): one categorical per free entity.
+
+    :param scorer: a :class:`PairScorer` (TAM) or :class:`FlatScorer` (W/o TAM)
+    """
+
+    optimizer: th.optim.Optimizer
+
+    def __init__(self, scorer: nn.Module) -> None:
+        super().__init__()
+        self.scorer = scorer
+
+    def forward(self, view: ObsView) -> MaskedCategorical:
+        return MaskedCategorical(self.scorer(view), view.valid)
+
+
+class MixingCritic(nn.Module):
+    """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) with Q_i(s, j) = o_i·q_j (+ pair term), or the global MLP (W/o AMIX).
+
+    :param scorer: per-entity Q scorer (None with the global mixer)
+    :param mixer: :class:`AMIXMixer` or :class:`GlobalMixer`
+    """
+
+    def __init__(self, scorer: nn.Module | None, mixer: nn.Module) -> None:
+        super().__init__()
+        self.scorer = scorer
+        self.mixer = mixer
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
+        if self.scorer is None:
+            return self.mixer(assign, view)
+        q_i = (self.scorer(view) * assign).sum(-1)
+        return self.mixer(q_i, view)
+
+
+class TwinCritic(nn.Module):
+    """``n_critics`` independent :class:`MixingCritic` (clipped double-Q)."""
+
+    optimizer: th.optim.Optimizer
+
+    def __init__(self, critics: list[MixingCritic]) -> None:
+        super().__init__()
+        self.q_networks = nn.ModuleList(critics)
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> tuple[th.Tensor, ...]:
+        return tuple(q(view, assign) for q in self.q_networks)
+
+
+class SelectCritic(nn.Module):
+    """Twin Q-functions of the select stage, Q(s_t, i) for every candidate i (pointer form with ReLU)."""
+
+    optimizer: th.optim.Optimizer
+
+    def __init__(self, heads: list[PointerHead]) -> None:
+        super().__init__()
+        self.heads = nn.ModuleList(heads)
+
+    def forward(self, embeddings: list[th.Tensor], task_state: th.Tensor, dyn: th.Tensor, own: th.Tensor) -> list[th.Tensor]:
+        return [h(d, task_state, dyn, own) for h, d in zip(self.heads, embeddings, strict=True)]
+
+    def embed(self, view: ObsView) -> list[th.Tensor]:
+        return [h.embed_entities(view) for h in self.heads]  # type: ignore[operator]
+
+
+class Selector(nn.Module):
+    """The pointer actor of the select stage."""
+
+    optimizer: th.optim.Optimizer
+
+    def __init__(self, head: PointerHead) -> None:
+        super().__init__()
+        self.head = head
+
+
+class TAMPolicy(BasePolicy):
+    """Policy of :class:`~sb3_taskalloc.TwoStageSAC`: TAM pre-assign actor, twin TAM critics mixed by AMIX, and the
+    pointer select head with its twin critic. Size-agnostic in the number of entities and tasks (with the defaults).
+
+    :param observation_space: Dict observation space of a ``TaskAlloc`` env
+    :param action_space: MultiDiscrete([M + 1] * N)
+    :param lr_schedule: learning rate schedule
+    :param hidden_dim: width d of every embedding and hidden layer (paper: 64)
+    :param n_attention_layers: self-attention blocks in the TAM encoders (0: MLP embeddings, as the paper)
+    :param pair_features: add a learned term of (pair cost, coverage, reward − cost) to the TAM scores
+    :param preassign: two stages (True) or the "W/o Pre" ablation: tasks pick from one shared pool
+    :param task_order: order of the tasks without pre-assignment: ``"sequential"`` (slot order) or ``"random"``
+    :param encoder: ``"tam"`` (size-agnostic attention module) or ``"mlp"`` (the "W/o TAM" ablation, size-specific)
+    :param mixer: ``"amix"`` or ``"global"`` (the "W/o AMIX" ablation: one MLP over the flattened state and c)
+    :param monotonic_mixer: QMIX-style non-negative mixing weights
+    :param hyper_bias: state-dependent AMIX bias
+    :param n_critics: number of critics (clipped double-Q)
+    :param activation_fn: activation of the MLPs (paper: ReLU)
+    :param optimizer_class: optimizer of every network
+    :param optimizer_kwargs: extra optimizer arguments
+    """
+
+    actor: PreAssignActor | None
+    critic: TwinCritic | None
+    critic_target: TwinCritic | None
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.MultiDiscrete,
+        lr_schedule: Schedule,
+        hidden_dim: int = 64,
+        n_attention_layers: int = 0,
+        pair_features: bool = True,
+        preassign: bool = True,
+        task_order: Literal["sequential", "random"] = "sequential",
+        encoder: Literal["tam", "mlp"] = "tam",
+        mixer: Literal["amix", "global"] = "amix",
+        monotonic_mixer: bool = False,
+        hyper_bias: bool = True,
+        n_critics: int = 2,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            normalize_images=False,
+        )
+        check_spaces(observation_space, action_space)
+        if task_order not in ("sequential", "random"):
+            raise ValueError(f"task_order must be 'sequential' or 'random', got {task_order!r}")
+        if encoder not in ("tam", "mlp"):
+            raise ValueError(f"encoder must be 'tam' or 'mlp', got {encoder!r}")
+        if mixer not in ("amix", "global"):
+            raise ValueError(f"mixer must be 'amix' or 'global', got {mixer!r}")
+        self.hidden_dim = hidden_dim
+        self.n_attention_layers = n_attention_layers
+        self.pair_features = pair_features
+        self.preassign = preassign
+        self.task_order = task_order
+        self.encoder = encoder
+        self.mixer = mixer
+        self.monotonic_mixer = monotonic_mixer
+        self.hyper_bias = hyper_bias
+        self.n_critics = n_critics
+        self.activation_fn = activation_fn
+        self._build(lr_schedule)
+
+    # ------------------------------------------------------------------ building
+
+    @property
+    def dims(self) -> tuple[int, int, int, int, int]:
+        """(N, M, Fe, Ft, K) of the observation space."""
+        obs = self.observation_space
+        N, Fe = obs["entity_features"].shape  # type: ignore[index]
+        M, Ft = obs["task_features"].shape  # type: ignore[index]
+        K = obs["entity_supply"].shape[1]  # type: ignore[index]
+        return N, M, Fe, Ft, K
+
+    @property
+    def size_agnostic(self) -> bool:
+        """Whether the networks accept any number of entities and tasks (TAM encoder and AMIX mixer)."""
+        return not self.preassign or (self.encoder == "tam" and self.mixer == "amix")
+
+    def _scorer(self, scale: float) -> nn.Module:
+        N, M, Fe, Ft, _ = self.dims
+        if self.encoder == "mlp":
+            return FlatScorer(N, M, Fe, Ft, self.hidden_dim, self.activation_fn)
+        return PairScorer(Fe, Ft, self.hidden_dim, scale, self.pair_features, self.n_attention_layers, self.activation_fn)
+
+    def _make_critic(self) -> TwinCritic:
+        N, M, Fe, Ft, _ = self.dims
+        critics = []
+        for _ in range(self.n_critics):
+            if self.mixer == "global":
+                critics.append(MixingCritic(None, GlobalMixer(N, M, Fe, Ft, self.hidden_dim, self.activation_fn)))
+            else:
+                mixer = AMIXMixer(Fe, Ft, self.hidden_dim, self.monotonic_mixer, self.hyper_bias, self.activation_fn)
+                critics.append(MixingCritic(self._scorer(scale=1.0), mixer))  # critics unscaled (reference spec B20)
+        return TwinCritic(critics)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        _, _, Fe, _, K = self.dims
+        opt = self.optimizer_kwargs
+        lr = lr_schedule(1)
+        if self.preassign:
+            self.actor = PreAssignActor(self._scorer(scale=math.sqrt(self.hidden_dim)))
+            self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+            self.critic = self._make_critic()
+            self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+            self.critic_target = self._make_critic()
+            self.critic_target.load_state_dict(self.critic.state_dict())
+            self.critic_target.train(False)
+        else:
+            self.actor = self.critic = self.critic_target = None
+        self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn))
+        self.selector.optimizer = self.optimizer_class(self.selector.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+        make_heads = lambda: [
+            PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True) for _ in range(self.n_critics)
+        ]
+        self.select_critic = SelectCritic(make_heads())
+        self.select_critic.optimizer = self.optimizer_class(self.select_critic.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+        self.select_critic_target = SelectCritic(make_heads())
+        self.select_critic_target.load_state_dict(self.select_critic.state_dict())
+        self.select_critic_target.train(False)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                lr_schedule=self._dummy_schedule,  # type: ignore[arg-type]
+                hidden_dim=self.hidden_dim,
+                n_attention_layers=self.n_attention_layers,
+                pair_features=self.pair_features,
+                preassign=self.preassign,
+                task_order=self.task_order,
+                encoder=self.encoder,
+                mixer=self.mixer,
+                monotonic_mixer=self.monotonic_mixer,
+                hyper_bias=self.hyper_bias,
+                n_critics=self.n_critics,
+                activation_fn=self.activation_fn,
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+            )
+        )
+        return data
+
+    def set_training_mode(self, mode: bool) -> None:
+        for module in (self.actor, self.critic, self.selector, self.select_critic):
+            if module is not None:
+                module.train(mode)
+        self.training = mode
+
+    # ------------------------------------------------------------------ acting
+
+    def parse(self, obs: PyTorchObs) -> ObsView:
+        assert isinstance(obs, dict), "TAMPolicy needs the Dict observations of a TaskAlloc env"
+        return parse_obs(obs)
+
+    def select_round(self, view: ObsView, task_of: th.Tensor, deterministic: bool, uniform: bool = False) -> SelectState:
+        """Decode the teams of every task of one round in parallel (one pick per task per step)."""
+        st = SelectState(view, task_of)
+        B, M, N = st.seg.shape
+        d = None if uniform else self.selector.head.embed_entities(view)
+        for t in range(N):
+            if not bool(st.active.any()):
+                break
+            mask = st.choice_mask()
+            if d is None:
+                logits = th.zeros(B, N, device=task_of.device)
+            else:
+                task_state, dyn = st.features()
+                logits = self.selector.head(d, task_state, dyn, st.own)
+            dist = MaskedCategorical(logits.unsqueeze(1).expand(B, M, N), mask)
+            picks = dist.get_actions(deterministic)
+            valid = st.active.clone()
+            old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
+            st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
+            st.advance(picks, valid)
+        return st
+
+    def decide(self, view: ObsView, deterministic: bool = False, uniform: bool = False) -> Decision:
+        """Both stages on a batch of observations.
+
+        :param view: parsed observations
+        :param deterministic: argmax at both stages (else sample)
+        :param uniform: uniform random choices at both stages (warm-up exploration)
+        """
+        B, N = view.entity_mask.shape
+        M = view.task_mask.shape[1]
+        device = view.entity_mask.device
+        slots = th.arange(M, device=device).view(1, M, 1)
+        if self.preassign:
+            # Stage 1: every free entity samples one open task (candidate sets C_j).
+            assert self.actor is not None
+            if uniform:
+                dist = MaskedCategorical(th.zeros(B, N, M, device=device), view.valid)
+            else:
+                dist = self.actor(view)
+            c = th.where(view.assignable, dist.get_actions(deterministic), -1)
+            st = self.select_round(view, c, deterministic, uniform)
+            candidates = c.unsqueeze(1) == slots
+            rank, kept = st.rank, st.kept()
+        else:
+            # W/o Pre: tasks pick in turn from one shared pool; abandoned picks return to the pool (B15 fixed).
+            if self.task_order == "random":
+                order = th.argsort(th.rand(B, M, device=device), dim=1)
+            else:
+                order = th.arange(M, device=device).expand(B, M)
+            pool = view.entity_mask.clone()
+            candidates = th.zeros(B, M, N, dtype=th.bool, device=device)
+            rank = th.full((B, M, N), -1, dtype=th.long, device=device)
+            kept = th.zeros(B, M, dtype=th.bool, device=device)
+            rows = th.arange(B, device=device)
+            for r in range(M):
+                j = order[:, r]
+                open_j = view.task_mask[rows, j]
+                task_of = th.where(pool & open_j.unsqueeze(-1), j.unsqueeze(-1), -1)
+                candidates[rows, j] = task_of >= 0
+                st = self.select_round(view, task_of, deterministic, uniform)
+                kept_r = st.kept()
+                rank = th.where(st.rank >= 0, st.rank, rank)
+                kept = kept | kept_r
+                pool = pool & ~((st.rank >= 0) & kept_r.unsqueeze(-1)).any(1)
+        return Decision(env_action_of(rank, kept), candidates, rank, kept)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.decide(self.parse(observation), deterministic).env_action
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic)
+
+
+def env_action_of(rank: th.Tensor, kept: th.Tensor) -> th.Tensor:
+    """(B, N) env action from the pick ranks and kept tasks: an entity goes to the kept task that picked it, else
+    "unassigned" (M)."""
+    M = rank.shape[1]
+    assigned = (rank >= 0) & kept.unsqueeze(-1)  # (B, M, N)
+    task = assigned.float().argmax(1)
+    return th.where(assigned.any(1), task, th.full_like(task, M))
+
+
+def check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+    """Raise a clear error unless the spaces follow the TaskAlloc contract (DESIGN §3)."""
+    keys = {
+        "entity_features",
+        "task_features",
+        "entity_supply",
+        "task_demand",
+        "task_reward",
+        "pair_cost",
+        "entity_mask",
+        "task_mask",
+    }
+    if not isinstance(observation_space, spaces.Dict) or not keys <= set(observation_space.spaces):
+        raise ValueError(
+            f"TAMPolicy needs a TaskAlloc Dict observation space with keys {sorted(keys)}, got {observation_space}"
+        )
+    N = observation_space["entity_mask"].shape[0]  # type: ignore[index]
+    M = observation_space["task_mask"].shape[0]  # type: ignore[index]
+    if (
+        not isinstance(action_space, spaces.MultiDiscrete)
+        or action_space.shape != (N,)
+        or not (action_space.nvec == M + 1).all()
+    ):
+        raise ValueError(
+            f"TAMPolicy needs MultiDiscrete([{M + 1}] * {N}) actions (M + 1 choices per entity), got {action_space}"
+        )

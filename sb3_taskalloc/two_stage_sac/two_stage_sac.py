@@ -1,0 +1,540 @@
+"""TwoStageSAC: discrete soft actor-critic for multi-entity task allocation (DESIGN §5)."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import obs_as_tensor, polyak_update
+from torch.nn import functional as F
+
+from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
+from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.two_stage_sac.policies import COVER_TOL, SelectState, TAMPolicy, check_spaces, select_features
+
+SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
+
+#: Budget of ``learn()`` called without ``total_timesteps`` (env steps).
+DEFAULT_TOTAL_TIMESTEPS = 20_000
+
+
+class TwoStageSAC(OffPolicyAlgorithm):
+    """Two-stage discrete soft actor-critic (paper: "A Two-stage Reinforcement Learning-based Approach for
+    Multi-entity Task Allocation"), for the ``TaskAlloc`` environments.
+
+    One decision = two stages (paper Algorithm 1): each free entity samples a task from the TAM actor
+    π_i(j|s) = softmax_j(h_i·g_j/√d) (pre-assignment, candidate sets C_j); then, for every open task in parallel,
+    a pointer head picks candidates one by one until the task's demand is covered; a task whose internal profit
+    (reward if covered − Σ pair costs) is ≤ 0 is abandoned.
+
+    Implementation details (equations; deviations from the paper and the published code):
+
+    1. Stage-1 critics: Q^k_i(s, j) = o_i·q_j (+ a learned term of the pair cost, coverage and margin), k = 1, 2, mixed
+       by AMIX: Q^k_tot(s, c) = MLP(ReLU(Σ_i Q^k_i(s, c_i) w_i + b)), with hyper-weights w_i from a self-attention
+       hypernetwork over the free entities and a state-dependent hyper-bias b. Target copies updated by Polyak
+       averaging (τ).
+    2. Stage-1 target: y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], with
+       H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised policy). The env reward is the
+       learning signal (the published code regressed internal select returns instead, reference spec B27).
+    3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
+       (true entropy and expectation over actions; the published code used −Σ log p and p·Q of the taken action, B1).
+    4. α auto-tuned (``ent_coef="auto"``): loss log α·(H̄(s) − H̄*), H̄ = mean per-entity entropy,
+       H̄* = ``target_entropy_ratio`` × mean_i log(#valid tasks of i); or fixed (paper: 0.05).
+    5. Select stage: a short MDP per task computed from the observation (state = remaining demand and picked set;
+       action = pick; reward = −pair cost, + the task reward on covering; γ = 1 within a task), trained by discrete
+       SAC: Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})];
+       actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)]. Transitions are re-derived from the stored
+       (observation, candidate sets, pick order); TD targets are detached and use the target critic (B2 fixed); the
+       published code updated it online with batch 1 (B25).
+    6. Pointer: logits u_i = d_i·e_j^t/√d + φ(x_i^t), a dot-product pointer instead of the paper's additive
+       vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step: ~10× cheaper to train);
+       e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
+       T^{t+1} = T^t + f^a(u^t)); x_i^t = the entity's coverage of that demand, pair cost, margin and waste. The select
+       critics add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
+    7. Scores are divided by √d in the actor (paper) and not in the critics (B20). Inputs are symlog-normalised.
+    8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks.
+    9. Ablations are policy kwargs: ``preassign=False, task_order="sequential"|"random"`` (W/o Pre),
+       ``encoder="mlp"`` (W/o TAM), ``mixer="global"`` (W/o AMIX). Abandoned picks return to the pool (B15 fixed).
+
+    :param policy: ``"TAMPolicy"`` or a :class:`TAMPolicy` subclass
+    :param env: a ``TaskAlloc`` environment (or its id)
+    :param learning_rate: learning rate of every optimizer (constant or schedule)
+    :param buffer_size: replay buffer size
+    :param learning_starts: env steps of uniformly random valid decisions before learning
+    :param batch_size: minibatch size
+    :param tau: Polyak coefficient of the target networks
+    :param gamma: discount factor of the stage-1 MDP
+    :param train_freq: update the model every ``train_freq`` steps (int or (n, "step"|"episode"))
+    :param gradient_steps: gradient steps per rollout (-1: as many as env steps collected)
+    :param replay_buffer_class: replay buffer class (default :class:`TwoStageReplayBuffer`)
+    :param replay_buffer_kwargs: extra replay buffer arguments
+    :param ent_coef: stage-1 entropy coefficient α: ``"auto"``, ``"auto_0.1"`` (auto with initial value) or a float
+    :param select_ent_coef: select-stage entropy coefficient α_s (same forms)
+    :param target_entropy_ratio: H̄* as a fraction of the maximum per-entity (or per-pick) entropy
+    :param target_update_interval: target network update interval (gradient steps)
+    :param select_batch_size: rows of each minibatch used by the select stage (each row holds up to M × team-size
+        transitions, so a few rows suffice; the decoding loop is the costly part of a gradient step)
+    :param stats_window_size: episodes in the rollout logging window
+    :param tensorboard_log: tensorboard log folder
+    :param policy_kwargs: :class:`TAMPolicy` keyword arguments (ablations included)
+    :param verbose: 0, 1 or 2
+    :param seed: random seed
+    :param device: ``"auto"`` (CUDA when present), ``"cpu"``, ``"cuda"``
+    :param _init_setup_model: build the networks at construction
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"TAMPolicy": TAMPolicy}
+    policy: TAMPolicy
+    replay_buffer: TwoStageReplayBuffer  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        policy: str | type[TAMPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 100_000,
+        learning_starts: int = 500,
+        batch_size: int = 64,
+        tau: float = 0.005,
+        gamma: float = 0.98,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        ent_coef: str | float = "auto",
+        select_ent_coef: str | float = "auto",
+        target_entropy_ratio: float = 0.3,
+        target_update_interval: int = 1,
+        select_batch_size: int = 16,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            action_noise=None,
+            replay_buffer_class=replay_buffer_class or TwoStageReplayBuffer,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            use_sde=False,
+            sde_support=False,
+            supported_action_spaces=(spaces.MultiDiscrete,),
+            support_multi_env=True,
+        )
+        self.ent_coef = ent_coef
+        self.select_ent_coef = select_ent_coef
+        self.target_entropy_ratio = target_entropy_ratio
+        self.target_update_interval = target_update_interval
+        self.select_batch_size = select_batch_size
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------ setup
+
+    def _setup_model(self) -> None:
+        if self.observation_space is not None:
+            check_spaces(self.observation_space, self.action_space)
+        super()._setup_model()
+        self._create_aliases()
+        self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
+        self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = self._entropy_coefficient(
+            self.select_ent_coef, "select_ent_coef"
+        )
+
+    def _entropy_coefficient(
+        self, spec: str | float, name: str
+    ) -> tuple[th.Tensor | None, th.optim.Optimizer | None, th.Tensor | None]:
+        """(log α parameter, its optimizer, None) for ``"auto[_init]"``, or (None, None, α) for a float."""
+        if isinstance(spec, str):
+            if not spec.startswith("auto"):
+                raise ValueError(f"{name} must be 'auto', 'auto_<init>' or a float, got {spec!r}")
+            init = float(spec.split("_")[1]) if "_" in spec else 0.1
+            if init <= 0:
+                raise ValueError(f"the initial value of {name} must be > 0, got {init}")
+            log_alpha = th.log(th.ones(1, device=self.device) * init).requires_grad_(True)
+            return log_alpha, th.optim.Adam([log_alpha], lr=self.lr_schedule(1)), None
+        return None, None, th.tensor(float(spec), device=self.device)
+
+    def _create_aliases(self) -> None:
+        self.actor = self.policy.actor
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+        self.selector = self.policy.selector
+        self.select_critic = self.policy.select_critic
+        self.select_critic_target = self.policy.select_critic_target
+
+    # ------------------------------------------------------------------ acting
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Masked exploration: uniformly random valid pre-assignments and picks during warm-up, then the stochastic
+        policy. Returns the env action and the packed decision stored in the replay buffer."""
+        assert self._last_obs is not None, "self._last_obs was not set"
+        uniform = self.num_timesteps < learning_starts
+        self.policy.set_training_mode(False)
+        with th.no_grad():
+            view = self.policy.parse(obs_as_tensor(self._last_obs, self.device))  # type: ignore[arg-type]
+            decision = self.policy.decide(view, deterministic=False, uniform=uniform)
+        action = decision.env_action.cpu().numpy()
+        buffer_action = pack_decision(action, decision.candidates.cpu().numpy(), decision.pick_rank.cpu().numpy())
+        return action, buffer_action
+
+    # ------------------------------------------------------------------ training
+
+    def _alpha(self, log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
+        return th.exp(log_alpha.detach()) if log_alpha is not None else fixed  # type: ignore[return-value]
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        self.policy.set_training_mode(True)
+        optimizers: list[th.optim.Optimizer] = [self.selector.optimizer, self.select_critic.optimizer]
+        if self.actor is not None and self.critic is not None:
+            optimizers += [self.actor.optimizer, self.critic.optimizer]
+        self._update_learning_rate(optimizers)
+        logs: dict[str, list[float]] = {}
+        for gradient_step in range(gradient_steps):
+            data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
+            view = self.policy.parse(data.observations)
+            if self.actor is not None:
+                next_view = self.policy.parse(data.next_observations)
+                for key, value in self._preassign_step(view, next_view, data).items():
+                    logs.setdefault(key, []).append(value)
+            for key, value in self._select_step(view, data).items():
+                logs.setdefault(key, []).append(value)
+            if gradient_step % self.target_update_interval == 0:
+                if self.critic is not None and self.critic_target is not None:
+                    polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                polyak_update(self.select_critic.parameters(), self.select_critic_target.parameters(), self.tau)
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, values in logs.items():
+            self.logger.record(f"train/{key}", float(np.mean(values)))
+
+    def _step_ent_coef(
+        self, log_alpha: th.Tensor | None, optimizer: th.optim.Optimizer | None, entropy: th.Tensor, target: th.Tensor
+    ) -> float | None:
+        """One step of the temperature loss log α·(H − H*) (α grows while the entropy is below its target)."""
+        if log_alpha is None or optimizer is None or entropy.numel() == 0:
+            return None
+        loss = (log_alpha * (entropy - target).detach()).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return loss.item()
+
+    def _preassign_step(self, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples) -> dict[str, float]:
+        assert self.actor is not None and self.critic is not None and self.critic_target is not None
+        losses = preassign_losses(self, view, next_view, data)
+        logs = {"ent_coef": losses["ent_coef"].item()}
+        ent_loss = self._step_ent_coef(
+            self.log_ent_coef, self.ent_coef_optimizer, losses["mean_entropy"], losses["target_entropy"]
+        )
+        if ent_loss is not None:
+            logs["ent_coef_loss"] = ent_loss
+        self.critic.optimizer.zero_grad()
+        losses["critic_loss"].backward()
+        self.critic.optimizer.step()
+        # Actor loss with the critics' fresh values; critic gradients from it are discarded (zeroed next step).
+        actor_loss = actor_loss_of(self, view, losses["ent_coef"])
+        self.actor.optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor.optimizer.step()
+        logs.update(critic_loss=losses["critic_loss"].item(), actor_loss=actor_loss.item())
+        return logs
+
+    def _select_step(self, view: ObsView, data: TwoStageReplayBufferSamples) -> dict[str, float]:
+        alpha = self._alpha(self.log_select_ent_coef, self.select_ent_coef_tensor)
+        rows = slice(0, self.select_batch_size)
+        sub = ObsView(*(x[rows] for x in view))
+        losses = select_losses(self.policy, sub, data.candidates[rows], data.pick_rank[rows], alpha, self.target_entropy_ratio)
+        logs = {"select_ent_coef": alpha.item()}
+        if losses["n"] == 0:
+            return logs
+        ent_loss = self._step_ent_coef(
+            self.log_select_ent_coef, self.select_ent_coef_optimizer, losses["entropy"], losses["target_entropy"]
+        )
+        if ent_loss is not None:
+            logs["select_ent_coef_loss"] = ent_loss
+        self.select_critic.optimizer.zero_grad()
+        losses["critic_loss"].backward()
+        self.select_critic.optimizer.step()
+        self.selector.optimizer.zero_grad()
+        losses["actor_loss"].backward()
+        self.selector.optimizer.step()
+        logs.update(select_critic_loss=losses["critic_loss"].item(), select_actor_loss=losses["actor_loss"].item())
+        return logs
+
+    # ------------------------------------------------------------------ API
+
+    def learn(
+        self: SelfTwoStageSAC,
+        total_timesteps: int = DEFAULT_TOTAL_TIMESTEPS,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "TwoStageSAC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfTwoStageSAC:
+        """Train for ``total_timesteps`` env steps (default :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000)."""
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """Attach an env. With a size-agnostic policy the env may have other entity/task counts (zero-shot transfer):
+        the spaces are adopted and the replay buffer is rebuilt for the new sizes. Feature sizes must match."""
+        env = self._wrap_env(env, self.verbose)  # type: ignore[arg-type]
+        new_obs, new_act = env.observation_space, env.action_space
+        check_spaces(new_obs, new_act)
+        if new_obs != self.observation_space:
+            old = self.observation_space
+            for key in ("entity_features", "task_features", "entity_supply"):
+                if new_obs[key].shape[-1] != old[key].shape[-1]:  # type: ignore[index]
+                    raise ValueError(
+                        f"the env's {key} has {new_obs[key].shape[-1]} features per row but the model was trained with "  # type: ignore[index]
+                        f"{old[key].shape[-1]}: it belongs to another family of environments"  # type: ignore[index]
+                    )
+            if not self.policy.size_agnostic:
+                raise ValueError(
+                    "this model's policy is size-specific (encoder='mlp' or mixer='global'): it cannot run on an env with "
+                    f"{new_obs['entity_mask'].shape[0]} entities × {new_obs['task_mask'].shape[0]} tasks; it was trained "  # type: ignore[index]
+                    f"with {old['entity_mask'].shape[0]} × {old['task_mask'].shape[0]}. Use the TAM encoder and AMIX mixer to transfer"  # type: ignore[index]
+                )
+            self.observation_space, self.action_space = new_obs, new_act
+            self.policy.observation_space, self.policy.action_space = new_obs, new_act
+            if self.replay_buffer is not None:
+                self.replay_buffer = TwoStageReplayBuffer(  # type: ignore[assignment]
+                    self.buffer_size,
+                    new_obs,
+                    new_act,
+                    device=self.device,
+                    n_envs=env.num_envs,
+                    **(self.replay_buffer_kwargs or {}),  # type: ignore[arg-type]
+                )
+        elif self.replay_buffer is not None and self.replay_buffer.n_envs != env.num_envs:
+            self.replay_buffer = TwoStageReplayBuffer(  # type: ignore[assignment]
+                self.buffer_size,
+                new_obs,
+                new_act,
+                device=self.device,
+                n_envs=env.num_envs,
+                **(self.replay_buffer_kwargs or {}),  # type: ignore[arg-type]
+            )
+        super().set_env(env, force_reset)
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfTwoStageSAC],
+        path: Any,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfTwoStageSAC:
+        """Load a model; ``env`` may have other entity/task counts when the policy is size-agnostic (see :meth:`set_env`)."""
+        model = BaseAlgorithm.load.__func__(  # type: ignore[attr-defined]
+            cls, path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
+        )
+        if env is not None:
+            model.set_env(env, force_reset)
+        return model
+
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "actor",
+            "critic",
+            "critic_target",
+            "selector",
+            "select_critic",
+            "select_critic_target",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "selector.optimizer", "select_critic.optimizer"]
+        if self.actor is not None:
+            state_dicts += ["actor.optimizer", "critic.optimizer"]
+        variables = []
+        for log_name, opt_name, fixed in (
+            ("log_ent_coef", "ent_coef_optimizer", "ent_coef_tensor"),
+            ("log_select_ent_coef", "select_ent_coef_optimizer", "select_ent_coef_tensor"),
+        ):
+            if getattr(self, opt_name, None) is not None:
+                variables.append(log_name)
+                state_dicts.append(opt_name)
+            else:
+                variables.append(fixed)
+        return state_dicts, variables
+
+
+# ---------------------------------------------------------------------- losses (DESIGN §5 closed forms)
+
+
+def preassign_losses(
+    model: TwoStageSAC, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples
+) -> dict[str, th.Tensor]:
+    """Stage-1 critic loss and temperature statistics (implementation details 2–4)."""
+    assert model.actor is not None and model.critic is not None and model.critic_target is not None
+    free = view.assignable
+    dist = model.actor(view)
+    entropy_i = dist.entropy()  # (B, N), 0 where the entity has no choice
+    n_free = free.sum(1)
+    has_free = n_free > 0
+    mean_entropy = (entropy_i.sum(1) / n_free.clamp_min(1))[has_free]
+    n_open = view.task_mask.sum(1).float()
+    target_entropy = (model.target_entropy_ratio * th.log(n_open.clamp_min(1)))[has_free]
+    alpha = model._alpha(model.log_ent_coef, model.ent_coef_tensor)
+    with th.no_grad():
+        next_dist = model.actor(next_view)
+        next_q = th.stack(model.critic_target(next_view, next_dist.probs), dim=0).min(0).values
+        next_v = next_q + alpha * next_dist.entropy().sum(1)
+        target_q = data.rewards.squeeze(-1) + (1 - data.dones.squeeze(-1)) * model.gamma * next_v
+    assign = data.candidates.transpose(1, 2).float()  # one-hot c: (B, N, M)
+    current = model.critic(view, assign)
+    critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
+    return {
+        "critic_loss": critic_loss,  # type: ignore[dict-item]
+        "target_q": target_q,
+        "ent_coef": alpha,
+        "mean_entropy": mean_entropy,
+        "target_entropy": target_entropy,
+    }
+
+
+def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha: th.Tensor) -> th.Tensor:
+    """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))."""
+    assert model.actor is not None and model.critic is not None
+    dist = model.actor(view)
+    q_pi = th.stack(model.critic(view, dist.probs), dim=0).min(0).values
+    return (-alpha * dist.entropy().sum(1) - q_pi).mean()
+
+
+def select_rounds(policy: TAMPolicy, candidates: th.Tensor) -> list[th.Tensor]:
+    """Decoding rounds of the stored decisions: one round (c from the candidate sets) with pre-assignment; one per
+    task without it (the candidate sets then overlap)."""
+    B, M, N = candidates.shape
+    if policy.preassign:
+        c = th.where(candidates.any(1), candidates.float().argmax(1), -1)
+        return [c]
+    return [th.where(candidates[:, j], j, -1) for j in range(M)]
+
+
+def select_losses(
+    policy: TAMPolicy,
+    view: ObsView,
+    candidates: th.Tensor,
+    pick_rank: th.Tensor,
+    alpha: th.Tensor,
+    target_entropy_ratio: float,
+) -> dict[str, Any]:
+    """Discrete-SAC losses of the select stage on the stored pick orders (implementation detail 5).
+
+    Under teacher forcing every state of the decoding is known in advance (remaining demand after t picks =
+    relu(demand − Σ supplies of the first t picks), cost = Σ their pair costs, available = not picked before t), so
+    all steps of all tasks of all rows are evaluated in one batched pass, with time as a leading dimension.
+    """
+    parts: dict[str, list[th.Tensor]] = {}
+    for task_of in select_rounds(policy, candidates):
+        for key, value in _select_round_terms(policy, view, task_of, pick_rank, alpha).items():
+            parts.setdefault(key, []).append(value)
+    if not parts:
+        return {"n": 0}
+    cat = {key: th.cat(values) for key, values in parts.items()}
+    target = (cat["reward"] + (1 - cat["done"]) * cat["v_next"]).detach()  # γ = 1 within a task
+    n_critics = cat["q_sa"].shape[-1]
+    critic_loss = 0.5 * sum(F.mse_loss(cat["q_sa"][:, k], target) for k in range(n_critics))
+    return {
+        "n": int(target.numel()),
+        "critic_loss": critic_loss,
+        "actor_loss": cat["actor"].mean(),
+        "target": target,
+        "entropy": cat["entropy"],
+        "target_entropy": target_entropy_ratio * cat["log_choices"],
+    }
+
+
+def _select_round_terms(
+    policy: TAMPolicy, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, alpha: th.Tensor
+) -> dict[str, th.Tensor]:
+    """Per-transition terms (flattened over valid (t, b, j)) of one decoding round."""
+    st = SelectState(view, task_of)
+    rank = th.where(st.seg, pick_rank, -1)  # (B, M, N)
+    steps = int(rank.max().item()) + 1
+    if steps <= 0:
+        return {}
+    B, M, N = rank.shape
+    t = th.arange(steps, device=rank.device)
+    picked_at = rank.unsqueeze(0) == t.view(-1, 1, 1, 1)  # (T, B, M, N)
+    valid = picked_at.any(-1)  # (T, B, M): task j picks at step t
+    pf = picked_at.float()
+    sup = pf @ view.supply  # (T, B, M, K) supply of the pick
+    pc = (pf * view.pair_cost.transpose(1, 2)).sum(-1)  # (T, B, M) pair cost of the pick
+    sup_cum, pc_cum, n_cum = sup.cumsum(0), pc.cumsum(0), valid.float().cumsum(0)
+    rem = (view.demand - (sup_cum - sup)).clamp_min(0.0)  # before the pick
+    rem_after = (view.demand - sup_cum).clamp_min(0.0)
+    rank_own = rank.max(1).values  # (B, N): step at which the entity's task picked it, −1 if never
+    cand = st.seg.any(1)
+    tt = t.view(-1, 1, 1)
+    avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
+    avail_after = cand & ((rank_own < 0) | (rank_own > tt))
+    mask = st.seg & avail.unsqueeze(2) & valid.unsqueeze(-1)
+    newly = valid & (rem_after <= COVER_TOL).all(-1)
+    left = (st.seg & avail_after.unsqueeze(2)).any(-1)
+    done = valid & (newly | ~left)
+    reward = valid.float() * (-pc + view.reward * newly.float())
+
+    task_state, dyn = select_features(view, st.own, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())
+    logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, st.own)
+    dist = MaskedCategorical(logits.unsqueeze(2).expand(steps, B, M, N), mask)
+    qs = [q.unsqueeze(2) for q in policy.select_critic(policy.select_critic.embed(view), task_state, dyn, st.own)]
+    with th.no_grad():
+        d_target = policy.select_critic_target.embed(view)
+        q_targ = th.stack(policy.select_critic_target(d_target, task_state, dyn, st.own), 0).min(0).values.unsqueeze(2)
+        v = (dist.probs * (q_targ - alpha * dist.log_probs)).sum(-1)  # V(s_t), (T, B, M)
+        v_next = th.cat([v[1:], th.zeros_like(v[:1])], 0)
+    min_q = th.stack(qs, 0).min(0).values.detach()
+    actor = (dist.probs * (alpha * dist.log_probs - min_q)).sum(-1)
+    q_sa = th.stack([(pf * q).sum(-1) for q in qs], dim=-1)  # (T, B, M, n_critics)
+    return {
+        "reward": reward[valid],
+        "done": done[valid].float(),
+        "v_next": v_next[valid],
+        "q_sa": q_sa[valid],
+        "actor": actor[valid],
+        "entropy": dist.entropy()[valid],
+        "log_choices": th.log(mask.sum(-1).float().clamp_min(1))[valid],
+    }
