@@ -349,12 +349,19 @@ class PointerHead(nn.Module):
     def embed_entities(self, view: ObsView) -> th.Tensor:
         return self.entity(view.entity)
 
-    def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, own: th.Tensor) -> th.Tensor:
-        """:param d: (B, N, H) entity embeddings; :param task_state: (B, M, S); :param dyn: (B, N, SELECT_DYN);
-        :param own: (B, N, M) float one-hot of the task whose decoding entity i takes part in (zero row: none)
-        :return: (B, N) scores"""
+    def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
+        """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
+        dims); :param dyn: (..., B, N, SELECT_DYN); :param task_of: (B, N) task whose candidate entity i is (−1: none)
+        :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
         e = self.task(task_state)
-        scores = ((d @ e.transpose(-1, -2)) * own).sum(-1) / self.scale + self.dyn(dyn).squeeze(-1)
+        lead = e.shape[:-3]
+        B, M, H = e.shape[-3:]
+        # d_i·e_j for every pair in one batched matmul over B (no broadcast copies), then each entity's own column.
+        flat = e.reshape(-1, B, M, H).permute(1, 3, 0, 2).reshape(B, H, -1)  # (B, H, T·M)
+        pairs = (d @ flat).view(B, d.shape[1], -1, M).permute(2, 0, 1, 3).reshape(*lead, B, d.shape[1], M)
+        idx = task_of.clamp_min(0).unsqueeze(-1).expand(*lead, -1, -1, 1)
+        scores = th.gather(pairs, -1, idx).squeeze(-1) / self.scale + self.dyn(dyn).squeeze(-1)
         if self.value is not None:
-            scores = scores + (own @ self.value(e)).squeeze(-1)
+            values = self.value(e).squeeze(-1)  # (..., B, M)
+            scores = scores + th.gather(values, -1, task_of.clamp_min(0).expand(*lead, -1, -1))
         return scores

@@ -54,7 +54,6 @@ class SelectState:
         self.task_of = task_of
         self.slots = th.arange(M, device=task_of.device)
         self.seg = task_of.unsqueeze(1) == self.slots.view(1, M, 1)  # (B, M, N) candidates of task j
-        self.own = self.seg.transpose(1, 2).float()  # (B, N, M) one-hot of each entity's task
         self.avail = task_of >= 0  # (B, N) candidates not picked yet
         self.rem = view.demand.clone()
         self.cost = th.zeros(B, M, device=task_of.device)
@@ -66,7 +65,7 @@ class SelectState:
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
         """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
-        return select_features(self.view, self.own, self.pc_own, self.rem, self.cost, self.npick)
+        return select_features(self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick)
 
     def choice_mask(self) -> th.Tensor:
         """(B, M, N) entities task j may pick now."""
@@ -99,12 +98,12 @@ class SelectState:
 
 
 def select_features(
-    view: ObsView, own: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor, npick: th.Tensor
+    view: ObsView, task_of: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor, npick: th.Tensor
 ) -> tuple[th.Tensor, th.Tensor]:
     """Inputs of the pointer heads for one or many (leading dims) select-stage states.
 
     :param view: observations (B, ...)
-    :param own: (B, N, M) one-hot of the task each entity is a candidate of
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param pc_own: (B, N) pair cost of each entity for that task
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
     :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 4): coverage of the remaining
@@ -122,11 +121,13 @@ def select_features(
         ],
         dim=-1,
     )
-    rem_i = own @ rem  # (..., B, N, K): remaining demand of each entity's task
+    lead = rem.shape[:-3]
+    idx = task_of.clamp_min(0).expand(*lead, -1, -1)
+    rem_i = th.gather(rem, -2, idx.unsqueeze(-1).expand(*idx.shape, rem.shape[-1]))  # (..., B, N, K): own task's demand
     useful = th.minimum(view.supply, rem_i).sum(-1)
     cov = useful / rem_i.sum(-1).clamp_min(1e-6)
     waste = 1.0 - useful / view.supply.sum(-1).clamp_min(1e-6)
-    margin = (own @ (reward - cost).unsqueeze(-1)).squeeze(-1) - pc_own
+    margin = th.gather(reward - cost, -1, idx) - pc_own
     dyn = th.stack([cov, symlog(pc_own).expand_as(cov), symlog(margin), waste], dim=-1)
     return task_state, dyn
 
@@ -189,8 +190,10 @@ class SelectCritic(nn.Module):
         super().__init__()
         self.heads = nn.ModuleList(heads)
 
-    def forward(self, embeddings: list[th.Tensor], task_state: th.Tensor, dyn: th.Tensor, own: th.Tensor) -> list[th.Tensor]:
-        return [h(d, task_state, dyn, own) for h, d in zip(self.heads, embeddings, strict=True)]
+    def forward(
+        self, embeddings: list[th.Tensor], task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor
+    ) -> list[th.Tensor]:
+        return [h(d, task_state, dyn, task_of) for h, d in zip(self.heads, embeddings, strict=True)]
 
     def embed(self, view: ObsView) -> list[th.Tensor]:
         return [h.embed_entities(view) for h in self.heads]  # type: ignore[operator]
@@ -383,7 +386,7 @@ class TAMPolicy(BasePolicy):
                 logits = th.zeros(B, N, device=task_of.device)
             else:
                 task_state, dyn = st.features()
-                logits = self.selector.head(d, task_state, dyn, st.own)
+                logits = self.selector.head(d, task_state, dyn, task_of)
             dist = MaskedCategorical(logits.unsqueeze(1).expand(B, M, N), mask)
             picks = dist.get_actions(deterministic)
             valid = st.active.clone()

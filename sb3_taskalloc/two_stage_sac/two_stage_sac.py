@@ -517,13 +517,13 @@ def _select_round_terms(
     done = valid & (newly | ~left)
     reward = valid.float() * (-pc + view.reward * newly.float())
 
-    task_state, dyn = select_features(view, st.own, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())
-    logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, st.own)
+    task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())
+    logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, task_of)
     dist = MaskedCategorical(logits.unsqueeze(2).expand(steps, B, M, N), mask)
-    qs = [q.unsqueeze(2) for q in policy.select_critic(policy.select_critic.embed(view), task_state, dyn, st.own)]
+    qs = [q.unsqueeze(2) for q in policy.select_critic(policy.select_critic.embed(view), task_state, dyn, task_of)]
     with th.no_grad():
         d_target = policy.select_critic_target.embed(view)
-        q_targ = th.stack(policy.select_critic_target(d_target, task_state, dyn, st.own), 0).min(0).values.unsqueeze(2)
+        q_targ = th.stack(policy.select_critic_target(d_target, task_state, dyn, task_of), 0).min(0).values.unsqueeze(2)
         v = (dist.probs * (q_targ - alpha * dist.log_probs)).sum(-1)  # V(s_t), (T, B, M)
         v_next = th.cat([v[1:], th.zeros_like(v[:1])], 0)
     min_q = th.stack(qs, 0).min(0).values.detach()
