@@ -1,0 +1,154 @@
+"""TAMPolicy: masks, NaN safety, permutation equivariance, padding invariance (DESIGN §5, §11)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.utils import obs_as_tensor
+
+from envs.rendering import random_valid_action
+from sb3_taskalloc import TAMPolicy
+from sb3_taskalloc.common.torch_layers import parse_obs
+
+VARIANTS = {
+    "full": {},
+    "wo_pre_seq": {"preassign": False},
+    "wo_pre_random": {"preassign": False, "task_order": "random"},
+    "wo_tam": {"encoder": "mlp"},
+    "wo_amix": {"mixer": "global"},
+    "attention_monotonic": {"n_attention_layers": 1, "monotonic_mixer": True},
+}
+ENVS = ["TaskAlloc/Almighty-v0", "TaskAlloc/EPT-v0", "TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"]
+
+
+def make_policy(env: gym.Env, **kwargs) -> TAMPolicy:
+    return TAMPolicy(env.observation_space, env.action_space, lambda _: 1e-3, hidden_dim=16, **kwargs)  # type: ignore[arg-type]
+
+
+def sample_observations(env_id: str, n: int, seed: int = 0) -> list[dict[str, np.ndarray]]:
+    env = gym.make(env_id)
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    while len(out) < n:
+        obs, _, term, trunc, _ = env.step(random_valid_action(obs, rng))
+        out.append(obs)
+        if term or trunc:
+            obs, _ = env.reset(seed=int(rng.integers(1 << 30)))
+            out.append(obs)
+    return out[:n]
+
+
+def batch(observations: list[dict[str, np.ndarray]]) -> dict[str, th.Tensor]:
+    return obs_as_tensor({k: np.stack([o[k] for o in observations]) for k in observations[0]}, th.device("cpu"))  # type: ignore[return-value]
+
+
+@pytest.mark.parametrize("env_id", ENVS)
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_actions_respect_masks(env_id, variant):
+    th.manual_seed(0)
+    env = gym.make(env_id)
+    policy = make_policy(env, **VARIANTS[variant])
+    observations = sample_observations(env_id, 24)
+    view = parse_obs(batch(observations))
+    M = env.unwrapped.max_tasks  # type: ignore[attr-defined]
+    for deterministic in (True, False):
+        for _ in range(3):
+            d = policy.decide(view, deterministic=deterministic)
+            action = d.env_action.numpy()
+            for b, obs in enumerate(observations):
+                mask = obs["action_mask"].reshape(len(action[b]), M + 1).astype(bool)
+                assert mask[np.arange(len(action[b])), action[b]].all(), "an action broke the mask"
+            # Candidates are free entities and open tasks; every kept task is covered by its picks.
+            cand = d.candidates.numpy()
+            assert not (cand & ~view.entity_mask.numpy()[:, None, :]).any()
+            assert not (cand & ~view.task_mask.numpy()[:, :, None]).any()
+            picked = (d.pick_rank >= 0) & d.kept.unsqueeze(-1)
+            supplied = (picked.float() @ view.supply).numpy()
+            assert (supplied >= view.demand.numpy() - 1e-4)[d.kept.numpy()].all()
+            # The env accepts the action with no invalid assignment.
+    env.reset(seed=0)
+    act, _ = policy.predict(observations[0], deterministic=True)
+    assert act.shape == env.action_space.shape
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_all_masked_rows_no_nan(variant):
+    env = gym.make("TaskAlloc/RBF-v0")
+    policy = make_policy(env, **VARIANTS[variant])
+    obs = sample_observations("TaskAlloc/RBF-v0", 2)
+    no_entities = {k: v.copy() for k, v in obs[0].items()}
+    no_entities["entity_mask"][:] = 0
+    no_tasks = {k: v.copy() for k, v in obs[1].items()}
+    no_tasks["task_mask"][:] = 0
+    view = parse_obs(batch([no_entities, no_tasks]))
+    d = policy.decide(view, deterministic=False)
+    assert (d.env_action == env.unwrapped.max_tasks).all()  # type: ignore[attr-defined]
+    if policy.actor is not None and policy.critic is not None:
+        dist = policy.actor(view)
+        assert th.isfinite(dist.entropy()).all() and th.isfinite(dist.probs).all()
+        for q in policy.critic(view, dist.probs):
+            assert th.isfinite(q).all()
+
+
+def permute(obs: dict[str, np.ndarray], perm_e: np.ndarray, perm_t: np.ndarray) -> dict[str, np.ndarray]:
+    N, M = len(perm_e), len(perm_t)
+    out = dict(obs)
+    for key in ("entity_features", "entity_supply", "entity_mask"):
+        out[key] = obs[key][perm_e]
+    for key in ("task_features", "task_demand", "task_reward", "task_mask"):
+        out[key] = obs[key][perm_t]
+    out["pair_cost"] = obs["pair_cost"][perm_e][:, perm_t]
+    mask = obs["action_mask"].reshape(N, M + 1)
+    out["action_mask"] = np.concatenate([mask[perm_e][:, perm_t], mask[perm_e][:, M:]], 1).reshape(-1)
+    return out
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"n_attention_layers": 1}, {"monotonic_mixer": True}])
+def test_permutation_equivariance(kwargs):
+    th.manual_seed(0)
+    env = gym.make("TaskAlloc/RBF-v0")
+    policy = make_policy(env, **kwargs)
+    obs = sample_observations("TaskAlloc/RBF-v0", 12)[-1]
+    rng = np.random.default_rng(0)
+    pe, pt = rng.permutation(len(obs["entity_mask"])), rng.permutation(len(obs["task_mask"]))
+    v1, v2 = parse_obs(batch([obs])), parse_obs(batch([permute(obs, pe, pt)]))
+    assert policy.actor is not None and policy.critic is not None
+    p1, p2 = policy.actor(v1).probs[0], policy.actor(v2).probs[0]
+    th.testing.assert_close(p1[pe][:, pt], p2, atol=1e-5, rtol=1e-5)
+    q1 = policy.critic.q_networks[0].scorer(v1)[0]  # type: ignore[index]
+    q2 = policy.critic.q_networks[0].scorer(v2)[0]  # type: ignore[index]
+    th.testing.assert_close(q1[pe][:, pt], q2, atol=1e-5, rtol=1e-5)
+    for a, b in zip(policy.critic(v1, policy.actor(v1).probs), policy.critic(v2, policy.actor(v2).probs), strict=True):
+        th.testing.assert_close(a, b, atol=1e-4, rtol=1e-5)  # Q_tot is invariant
+
+
+def test_padding_changes_nothing():
+    th.manual_seed(0)
+    small = gym.make("TaskAlloc/RBF-v0")
+    big = gym.make("TaskAlloc/RBF-v0", max_entities=140, max_tasks=14)
+    policy = make_policy(small, n_attention_layers=1)
+    o_small, _ = small.reset(seed=3)
+    o_big, _ = big.reset(seed=3)
+    v_small, v_big = parse_obs(batch([o_small])), parse_obs(batch([o_big]))
+    assert policy.actor is not None and policy.critic is not None
+    p_small, p_big = policy.actor(v_small).probs[0], policy.actor(v_big).probs[0]
+    th.testing.assert_close(p_big[:100, :10], p_small, atol=1e-5, rtol=1e-5)
+    assert p_big[100:].abs().sum() == 0 and p_big[:, 10:].abs().sum() == 0
+    for a, b in zip(policy.critic(v_small, policy.actor(v_small).probs), policy.critic(v_big, policy.actor(v_big).probs), strict=True):
+        th.testing.assert_close(a, b, atol=1e-4, rtol=1e-5)
+    # Deterministic decisions agree on the real entities; padded ones stay unassigned.
+    a_small = policy.decide(v_small, deterministic=True).env_action[0]
+    a_big = policy.decide(v_big, deterministic=True).env_action[0]
+    assert th.equal(th.where(a_big[:100] == 14, 10, a_big[:100]), a_small) and (a_big[100:] == 14).all()
+
+
+def test_bad_spaces_rejected():
+    env = gym.make("CartPole-v1")
+    with pytest.raises(ValueError, match="TaskAlloc Dict observation space"):
+        TAMPolicy(env.observation_space, env.action_space, lambda _: 1e-3)  # type: ignore[arg-type]
+    rbf = gym.make("TaskAlloc/RBF-v0")
+    with pytest.raises(ValueError, match="encoder"):
+        make_policy(rbf, encoder="cnn")

@@ -1,0 +1,85 @@
+"""learn() smoke tests: every env id × every ablation, vectorised envs, callbacks, logging (tiny budgets)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import SubprocVecEnv
+
+import envs
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.two_stage_sac.two_stage_sac import DEFAULT_TOTAL_TIMESTEPS
+
+ABLATIONS = {
+    "full": {},
+    "wo_pre_sequence": {"preassign": False, "task_order": "sequential"},
+    "wo_pre_random": {"preassign": False, "task_order": "random"},
+    "wo_amix": {"mixer": "global"},
+    "wo_tam": {"encoder": "mlp"},
+}
+
+
+@pytest.mark.parametrize("env_id", list(envs.ENV_SPECS))
+@pytest.mark.parametrize("ablation", list(ABLATIONS))
+def test_learn_smoke(env_id, ablation):
+    model = TwoStageSAC(
+        "TAMPolicy", env_id, learning_starts=6, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8, **ABLATIONS[ablation]}
+    )
+    model.learn(10)
+    assert model.num_timesteps == 10
+    obs, _ = model.env.reset(), None  # type: ignore[union-attr]
+    action, _ = model.predict(obs, deterministic=True)
+    assert action.shape == (1, *model.action_space.shape)
+
+
+def test_logger_keys():
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8})
+    model.set_logger(configure(None, ["csv"]))
+    seen: set[str] = set()
+    original = model.logger.record
+
+    def record(key, value, exclude=None):
+        seen.add(key)
+        original(key, value, exclude)
+
+    model.logger.record = record  # type: ignore[method-assign]
+    model.learn(12, log_interval=1)
+    keys = {"train/actor_loss", "train/critic_loss", "train/ent_coef", "train/ent_coef_loss", "train/select_actor_loss",
+            "train/select_critic_loss", "rollout/ep_rew_mean"}  # fmt: skip
+    assert keys <= seen, keys - seen
+
+
+@pytest.mark.parametrize("vec_env_cls", [None, SubprocVecEnv])
+def test_multiple_envs(vec_env_cls):
+    kwargs = {"start_method": "fork"} if vec_env_cls is SubprocVecEnv else None
+    env = make_vec_env("TaskAlloc/EPT-v0", n_envs=2, seed=0, vec_env_cls=vec_env_cls, vec_env_kwargs=kwargs)
+    model = TwoStageSAC("TAMPolicy", env, learning_starts=6, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8})
+    model.learn(16)
+    assert model.num_timesteps == 16 and model.replay_buffer.n_envs == 2
+    env.close()
+
+
+def test_callbacks_and_progress_bar(tmp_path):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8})
+    eval_cb = EvalCallback(Monitor(gym.make("TaskAlloc/Almighty-v0")), eval_freq=5, n_eval_episodes=2, log_path=str(tmp_path), verbose=0)
+    ckpt = CheckpointCallback(save_freq=5, save_path=str(tmp_path / "ckpt"))
+    model.learn(12, callback=[eval_cb, ckpt], progress_bar=True)
+    assert (tmp_path / "evaluations.npz").exists()
+    assert len(list((tmp_path / "ckpt").glob("*.zip"))) >= 2
+    assert np.isfinite(eval_cb.last_mean_reward)
+
+
+def test_default_budget_documented():
+    assert "20,000" in TwoStageSAC.learn.__doc__  # type: ignore[operator]
+    assert TwoStageSAC.learn.__defaults__[0] == DEFAULT_TOTAL_TIMESTEPS  # type: ignore[index]
+
+
+def test_device_auto_is_cpu_or_cuda():
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", device="auto", policy_kwargs={"hidden_dim": 8})
+    assert model.device.type in ("cpu", "cuda")
+    assert next(model.policy.parameters()).device.type == model.device.type

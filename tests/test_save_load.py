@@ -1,0 +1,91 @@
+"""Save/load, replay buffer persistence, seeding and size transfer (DESIGN §11)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from sb3_taskalloc import TwoStageSAC
+
+SMALL = {"hidden_dim": 16}
+
+
+def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray]]:
+    env = gym.make(env_id, **kwargs)
+    return [env.reset(seed=s)[0] for s in range(n)]
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"preassign": False}, {"encoder": "mlp"}, {"mixer": "global"}])
+def test_save_load_identical_predict(tmp_path, kwargs):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=0, policy_kwargs={**SMALL, **kwargs})
+    model.learn(16)
+    model.save(tmp_path / "model")
+    loaded = TwoStageSAC.load(tmp_path / "model", env=gym.make("TaskAlloc/RBF-v0"))
+    for obs in observations("TaskAlloc/RBF-v0"):
+        np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    for key, value in model.policy.state_dict().items():
+        assert np.array_equal(value.numpy(), loaded.policy.state_dict()[key].numpy()), key
+    # Entropy coefficients and optimizers come back too; training resumes.
+    assert float(loaded.log_ent_coef.detach()) == pytest.approx(float(model.log_ent_coef.detach())) if model.log_ent_coef is not None else True
+    steps = loaded.num_timesteps
+    loaded.learn(6, reset_num_timesteps=False)
+    assert loaded.num_timesteps == steps + 6
+
+
+def test_replay_buffer_save_load(tmp_path):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/EPT-v0", learning_starts=20, batch_size=8, seed=0, policy_kwargs=SMALL)
+    model.learn(25)
+    model.save_replay_buffer(tmp_path / "buffer")
+    fresh = TwoStageSAC("TAMPolicy", "TaskAlloc/EPT-v0", seed=1, policy_kwargs=SMALL)
+    fresh.load_replay_buffer(tmp_path / "buffer")
+    assert fresh.replay_buffer.size() == model.replay_buffer.size() == 25
+    np.testing.assert_array_equal(fresh.replay_buffer.pick_rank, model.replay_buffer.pick_rank)
+    np.testing.assert_array_equal(fresh.replay_buffer.candidates, model.replay_buffer.candidates)
+    assert model.replay_buffer.nbytes_per_transition() > 0
+
+
+def test_same_seed_same_run():
+    runs = []
+    for _ in range(2):
+        model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=7, policy_kwargs=SMALL)
+        model.learn(20)
+        runs.append(model)
+    a, b = runs
+    np.testing.assert_array_equal(a.replay_buffer.actions[:20], b.replay_buffer.actions[:20])
+    np.testing.assert_array_equal(a.replay_buffer.rewards[:20], b.replay_buffer.rewards[:20])
+    for obs in observations("TaskAlloc/RBF-v0", 3):
+        np.testing.assert_array_equal(a.predict(obs, deterministic=True)[0], b.predict(obs, deterministic=True)[0])
+    c = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=8, policy_kwargs=SMALL)
+    c.learn(20)
+    assert not np.array_equal(a.replay_buffer.actions[:20], c.replay_buffer.actions[:20])
+
+
+def test_size_transfer(tmp_path):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=0, policy_kwargs=SMALL)
+    model.learn(12)
+    model.save(tmp_path / "tam")
+    for env in (gym.make("TaskAlloc/RBF-EntityShift-v0"), gym.make("TaskAlloc/RBF-v0", max_entities=200, max_tasks=12)):
+        loaded = TwoStageSAC.load(tmp_path / "tam", env=env)
+        obs, _ = env.reset(seed=0)
+        action, _ = loaded.predict(obs, deterministic=True)
+        assert action.shape == env.action_space.shape
+        _, _, _, _, info = env.step(action)
+        assert info["invalid_assignments"] == 0
+        loaded.learn(4, reset_num_timesteps=False)  # fine-tuning works in the new size
+
+
+def test_size_specific_policy_refuses(tmp_path):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, policy_kwargs={**SMALL, "encoder": "mlp"})
+    model.save(tmp_path / "mlp")
+    with pytest.raises(ValueError, match="size-specific"):
+        TwoStageSAC.load(tmp_path / "mlp", env=gym.make("TaskAlloc/RBF-EntityShift-v0"))
+
+
+def test_wrong_env_family_refused(tmp_path):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, policy_kwargs=SMALL)
+    model.save(tmp_path / "rbf")
+    with pytest.raises(ValueError, match="features per row"):
+        TwoStageSAC.load(tmp_path / "rbf", env=gym.make("TaskAlloc/Almighty-v0"))
+    with pytest.raises((ValueError, AssertionError), match="MultiDiscrete"):
+        TwoStageSAC("TAMPolicy", "CartPole-v1")

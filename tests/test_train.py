@@ -1,0 +1,170 @@
+"""Loss arithmetic of TwoStageSAC against the closed forms of DESIGN §5 on hand-built batches."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from torch.nn import functional as F
+
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.torch_layers import AMIXMixer, ObsView, parse_obs
+from sb3_taskalloc.two_stage_sac.policies import SelectState
+from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, preassign_losses, select_losses
+
+
+@pytest.fixture(scope="module")
+def model() -> TwoStageSAC:
+    m = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=32, batch_size=16, seed=0, policy_kwargs={"hidden_dim": 16})
+    m.learn(40)
+    return m
+
+
+def test_preassign_critic_target_and_losses(model):
+    data = model.replay_buffer.sample(16)
+    view, next_view = parse_obs(data.observations), parse_obs(data.next_observations)
+    out = preassign_losses(model, view, next_view, data)
+    alpha = th.exp(model.log_ent_coef.detach())
+    # Closed form: y = r + γ(1 − d)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α Σ_i H_i(s')]
+    with th.no_grad():
+        pi_next = model.actor(next_view)
+        mixed = []
+        for critic in model.critic_target.q_networks:
+            q_i = (critic.scorer(next_view) * pi_next.probs).sum(-1)
+            mixed.append(critic.mixer(q_i, next_view))
+        h_next = -(pi_next.probs * th.log(pi_next.probs.clamp_min(1e-30))).sum((1, 2))
+        y = data.rewards[:, 0] + model.gamma * (1 - data.dones[:, 0]) * (th.minimum(*mixed) + alpha * h_next)
+    th.testing.assert_close(out["target_q"], y, atol=1e-4, rtol=1e-4)
+    c = data.candidates.transpose(1, 2).float()
+    expected = 0.0
+    for critic in model.critic.q_networks:
+        q_tot = critic.mixer((critic.scorer(view) * c).sum(-1), view)
+        expected = expected + 0.5 * ((q_tot - y) ** 2).mean()
+    th.testing.assert_close(out["critic_loss"], expected, atol=1e-4, rtol=1e-4)
+    # Actor: −α H(s) − min_k AMIX^k(Σ_j π Q^k)
+    pi = model.actor(view)
+    h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))
+    mixed_pi = [cr.mixer((cr.scorer(view) * pi.probs).sum(-1), view) for cr in model.critic.q_networks]
+    th.testing.assert_close(actor_loss_of(model, view, alpha), (-alpha * h - th.minimum(*mixed_pi)).mean(), atol=1e-4, rtol=1e-4)
+    # Temperature statistics: mean per-entity entropy and ratio × log(#open tasks).
+    free = view.assignable
+    has = free.any(1)
+    th.testing.assert_close(out["mean_entropy"], (h / free.sum(1).clamp_min(1))[has], atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(
+        out["target_entropy"], (model.target_entropy_ratio * th.log(view.task_mask.sum(1).float()))[has], atol=1e-6, rtol=1e-6
+    )
+
+
+@pytest.mark.parametrize("monotonic", [False, True])
+def test_amix_closed_form(monotonic):
+    th.manual_seed(1)
+    mixer = AMIXMixer(entity_dim=5, task_dim=4, hidden_dim=8, monotonic=monotonic)
+    B, N, M = 3, 6, 2
+    ent_mask = th.tensor([[1, 1, 0, 1, 0, 1], [0] * 6, [1] * 6], dtype=th.bool)
+    view = ObsView(
+        entity=th.randn(B, N, 5), task=th.randn(B, M, 4), supply=th.rand(B, N, 2), demand=th.rand(B, M, 2),
+        reward=th.rand(B, M), pair_cost=th.rand(B, N, M), entity_mask=ent_mask, task_mask=th.ones(B, M, dtype=th.bool),
+        present=th.ones(B, N, dtype=th.bool), pair=th.zeros(B, N, M, 3),
+    )  # fmt: skip
+    q_i = th.randn(B, N)
+    got = mixer(q_i, view)
+    for b in range(B):
+        mask = ent_mask[b]
+        x = view.entity[b] * mask[:, None]
+        k, q, v = mixer.k(x), mixer.q(x), mixer.v(x)
+        scores = k @ q.T / math.sqrt(mixer.attention_dim)
+        scores[:, ~mask] = -1e9
+        w = th.softmax(scores, -1) @ v
+        if monotonic:
+            w = w.abs()
+        mixed = (q_i[b][mask][:, None] * w[mask]).sum(0)
+        ent_mean = view.entity[b].mean(0)
+        bias = mixer.const_bias + mixer.bias(th.cat([ent_mean, view.task[b].mean(0)]))
+        hidden = th.relu(mixed + bias)
+        expected = hidden @ mixer.out_w.abs() + mixer.out_b if monotonic else mixer.out(hidden)
+        th.testing.assert_close(got[b], expected.reshape(()), atol=1e-5, rtol=1e-5)
+    # Masked entities contribute nothing.
+    q_changed = q_i.clone()
+    q_changed[0, 2] += 100.0
+    th.testing.assert_close(mixer(q_changed, view)[0], got[0])
+
+
+def hand_view(reward: float = 10.0) -> ObsView:
+    """One row, one task needing 2 units; entities supply 1, 1, 2 at pair costs 1, 1, 3."""
+    supply = th.tensor([[[1.0], [1.0], [2.0]]])
+    demand = th.tensor([[[2.0]]])
+    pc = th.tensor([[[1.0], [1.0], [3.0]]])
+    obs = {
+        "entity_features": th.cat([pc, supply, th.zeros(1, 3, 4)], -1),
+        "task_features": th.tensor([[[reward, 2.0, 0, 0, 0]]]),
+        "entity_supply": supply, "task_demand": demand, "task_reward": th.tensor([[reward]]), "pair_cost": pc,
+        "entity_mask": th.ones(1, 3, dtype=th.int8), "task_mask": th.ones(1, 1, dtype=th.int8),
+    }  # fmt: skip
+    return parse_obs(obs)
+
+
+def test_select_losses_match_sequential_closed_form():
+    env = gym.make("TaskAlloc/Almighty-v0", n_skills=1, specialists=2)  # K = 1, N = 3, M = 2 (only its spaces)
+    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16}, learning_starts=0)
+    policy = m.policy
+    view = hand_view()
+    cand = th.tensor([[[True, True, True]]])
+    rank = th.tensor([[[0, 1, -1]]])  # picks entity 0, then entity 1: covered at step 1
+    alpha = th.tensor(0.2)
+    out = select_losses(policy, view, cand, rank, alpha, 0.5)
+    assert out["n"] == 2
+    # Sequential re-derivation with the inference-time state machine.
+    task_of = th.zeros(1, 3, dtype=th.long)
+    st = SelectState(view, task_of)
+    d = policy.selector.head.embed_entities(view)
+    dc, dt = policy.select_critic.embed(view), policy.select_critic_target.embed(view)
+    rewards, q_sa, values, actor_terms = [], [], [], []
+    for t, pick in enumerate([0, 1]):
+        ts, dyn = st.features()
+        mask = st.choice_mask()
+        dist = MaskedCategorical(policy.selector.head(d, ts, dyn, task_of).unsqueeze(1), mask)
+        qs = policy.select_critic(dc, ts, dyn, task_of)
+        qt = th.minimum(*policy.select_critic_target(dt, ts, dyn, task_of))
+        values.append((dist.probs[0, 0] * (qt[0] - alpha * dist.log_probs[0, 0])).sum())
+        actor_terms.append((dist.probs[0, 0] * (alpha * dist.log_probs[0, 0] - th.minimum(*qs)[0])).sum())
+        q_sa.append([q[0, pick] for q in qs])
+        r, done = st.advance(th.tensor([[pick]]), th.tensor([[True]]))
+        rewards.append(r[0, 0])
+        assert bool(done[0, 0]) == (t == 1)
+    assert rewards[0].item() == -1.0 and rewards[1].item() == pytest.approx(9.0)  # −cost; −cost + reward on covering
+    y = th.stack([rewards[0] + values[1], rewards[1]])  # γ = 1, done after the covering pick
+    th.testing.assert_close(out["target"], y.detach(), atol=1e-5, rtol=1e-5)
+    expected = sum(0.5 * F.mse_loss(th.stack([q_sa[0][k], q_sa[1][k]]), y.detach()) for k in range(2))
+    th.testing.assert_close(out["critic_loss"], expected, atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out["actor_loss"], th.stack(actor_terms).mean(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out["target_entropy"], 0.5 * th.log(th.tensor([3.0, 2.0])))
+
+
+def test_abandoned_when_unprofitable():
+    env = gym.make("TaskAlloc/Almighty-v0", n_skills=1, specialists=2)
+    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16})
+    view = hand_view(reward=1.5)  # covering costs at least 2 > 1.5
+    st = m.policy.select_round(view, th.zeros(1, 3, dtype=th.long), deterministic=True)
+    assert st.covered.all() and not st.kept().any()
+
+
+def test_entropy_coefficient_specs():
+    with pytest.raises(ValueError, match="ent_coef"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef="sometimes")
+    fixed = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef=0.05, select_ent_coef="auto_0.5")
+    assert fixed.log_ent_coef is None and float(fixed.ent_coef_tensor) == pytest.approx(0.05)
+    assert float(th.exp(fixed.log_select_ent_coef.detach())) == pytest.approx(0.5)
+
+
+def test_gradient_step_changes_parameters(model):
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.train(gradient_steps=2, batch_size=8)
+    after = model.policy.state_dict()
+    for prefix in ("actor.", "critic.", "selector.", "select_critic."):
+        changed = [k for k in after if k.startswith(prefix) and not th.equal(before[k], after[k])]
+        assert changed, f"no parameter of {prefix} changed"
+    assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
