@@ -54,13 +54,13 @@ def render_rgb(env: TaskAllocEnv) -> np.ndarray:
         if 0 <= slot < env.max_tasks and env._occupied[slot]:
             draw.line([tuple(ent[i]), tuple(task[slot])], fill=LINE_COLOR)
     rmax = max(float(env._reward.max(initial=0.0)), 1e-6)
-    for j in np.flatnonzero(env._occupied):
-        r = 4 + 8 * float(env._reward[j]) / rmax
-        x, y = task[j]
+    for slot in np.flatnonzero(env._occupied).tolist():
+        r = 4 + 8 * float(env._reward[slot]) / rmax
+        x, y = task[slot]
         draw.rectangle([x - r, y - r, x + r, y + r], outline=TASK_COLOR, width=2)
-    for i in np.flatnonzero(env._present0 & env._alive):
-        x, y = ent[i]
-        color = ENTITY_BUSY if env._assigned[i] >= 0 else ENTITY_FREE
+    for k in np.flatnonzero(env._present0 & env._alive).tolist():
+        x, y = ent[k]
+        color = ENTITY_BUSY if env._assigned[k] >= 0 else ENTITY_FREE
         draw.ellipse([x - 2.5, y - 2.5, x + 2.5, y + 2.5], fill=color)
     draw.text((4, 2), f"t={env._t}", fill=(0, 0, 0))
     return np.asarray(img, dtype=np.uint8)

@@ -73,7 +73,98 @@ def bench_envs(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
-BENCHES: dict[str, BenchFn] = {"envs": bench_envs}
+def _median_ms(fn: Callable[[], Any], reps: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
+def _scaled_rbf(n_entities: int, n_tasks: int) -> Any:
+    """An RBF env with ``n_entities`` entities (the training table repeated) and every one of ``n_tasks`` slots open."""
+    from envs.rbf import RBFEnv
+
+    return RBFEnv(entity_rows=[i % 100 for i in range(n_entities)], max_tasks=n_tasks, arrival_count=(n_tasks, n_tasks))
+
+
+def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """TAMPolicy decision latency: one RBF observation, a batch of 256, and the N × M scaling table (CPU; CUDA when
+    available)."""
+    import torch as th
+    from stable_baselines3.common.utils import obs_as_tensor
+
+    from sb3_taskalloc import TAMPolicy
+
+    devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
+    rows: list[dict[str, Any]] = []
+    sizes = [(100, 10)] + [(n, m) for n in (50, 100, 500, 1000) for m in (5, 10, 50)]
+    if args.quick:
+        sizes = [(100, 10), (50, 5)]
+    for device in devices:
+        for i, (n, m) in enumerate(sizes):
+            env = _scaled_rbf(n, m)
+            obs, _ = env.reset(seed=0)
+            th.manual_seed(0)
+            policy = TAMPolicy(env.observation_space, env.action_space, lambda _: 3e-4).to(device)  # type: ignore[arg-type]
+            policy.set_training_mode(False)
+            reps = 5 if (args.quick or n * m >= 50_000) else 30
+            row: dict[str, Any] = {"device": device, "entities": n, "tasks": m}
+            row["predict_ms"] = _median_ms(lambda: policy.predict(obs, deterministic=True), reps)  # noqa: B023
+            if i == 0:
+                batch = obs_as_tensor({k: np.repeat(v[None], 256, 0) for k, v in obs.items()}, th.device(device))
+
+                def decide_batch(policy: TAMPolicy = policy, batch: Any = batch, device: str = device) -> None:
+                    with th.no_grad():
+                        policy.decide(policy.parse(batch), deterministic=True)
+                        if device == "cuda":
+                            th.cuda.synchronize()
+
+                row["batch256_ms_per_obs"] = _median_ms(decide_batch, 3 if args.quick else 10, warmup=1) / 256
+                row["target"] = "predict <= 5 ms, batch 256 <= 0.5 ms/obs"
+            rows.append(row)
+    return rows
+
+
+def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step, and replay memory."""
+    import gymnasium as gym
+    import torch as th
+
+    import envs  # noqa: F401
+    from sb3_taskalloc import TwoStageSAC
+
+    devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
+    rows = []
+    for device in devices:
+        for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/EPT-v0", "TaskAlloc/MT-v0", "TaskAlloc/Almighty-v0"):
+            if args.quick and env_id != "TaskAlloc/RBF-v0":
+                continue
+            model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
+            model.learn(64)
+            steps = 20 if args.quick else 100
+            t0 = time.perf_counter()
+            model.learn(steps, reset_num_timesteps=False)
+            rate = steps / (time.perf_counter() - t0)
+            per = model.replay_buffer.nbytes_per_transition()
+            rows.append(
+                {
+                    "device": device,
+                    "env": env_id,
+                    "env_steps_per_s": rate,
+                    "s_per_100_step_episode": 100 / rate,
+                    "replay_bytes_per_transition": per,
+                    "replay_GB_for_100k": per * 100_000 / 1e9,
+                    "target_steps_per_s": 50 if env_id == "TaskAlloc/RBF-v0" else None,
+                }
+            )
+    return rows
+
+
+BENCHES: dict[str, BenchFn] = {"envs": bench_envs, "policy": bench_policy, "train": bench_train}
 
 
 def _print_table(name: str, rows: list[dict[str, Any]]) -> None:

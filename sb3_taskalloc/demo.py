@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> None:
         eval_env = Monitor(gym.make(args.env))
         eval_env.reset(seed=10_000 + args.seed)
         mean, std = evaluate_policy(agent, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)  # type: ignore[arg-type]
-        results[name] = (float(mean), float(std))
+        results[name] = (float(mean), float(std))  # type: ignore[arg-type]
     print(f"\n{args.env}: return over {args.eval_episodes} evaluation episodes (train {args.steps} steps, {train_s:.0f} s)")
     for name, (mean, std) in results.items():
         print(f"  {name:12s} {mean:9.2f} ± {std:.2f}")
@@ -65,7 +65,9 @@ def main(argv: list[str] | None = None) -> None:
     gif, ret = save_gif(
         gym.make(args.env, render_mode="rgb_array"), lambda o: model.predict(o, deterministic=True)[0], out / "episode.gif"
     )
-    (out / "results.json").write_text(json.dumps({"env": args.env, "steps": args.steps, "train_seconds": train_s, "eval": results}, indent=2))
+    (out / "results.json").write_text(
+        json.dumps({"env": args.env, "steps": args.steps, "train_seconds": train_s, "eval": results}, indent=2)
+    )
     print(f"wrote {png}, {gif} (episode return {ret:.2f}), {out / 'two_stage_sac.zip'}, {out / 'results.json'}")
 
 

@@ -137,7 +137,9 @@ def test_padding_changes_nothing():
     p_small, p_big = policy.actor(v_small).probs[0], policy.actor(v_big).probs[0]
     th.testing.assert_close(p_big[:100, :10], p_small, atol=1e-5, rtol=1e-5)
     assert p_big[100:].abs().sum() == 0 and p_big[:, 10:].abs().sum() == 0
-    for a, b in zip(policy.critic(v_small, policy.actor(v_small).probs), policy.critic(v_big, policy.actor(v_big).probs), strict=True):
+    for a, b in zip(
+        policy.critic(v_small, policy.actor(v_small).probs), policy.critic(v_big, policy.actor(v_big).probs), strict=True
+    ):
         th.testing.assert_close(a, b, atol=1e-4, rtol=1e-5)
     # Deterministic decisions agree on the real entities; padded ones stay unassigned.
     a_small = policy.decide(v_small, deterministic=True).env_action[0]

@@ -38,7 +38,9 @@ def test_learn_smoke(env_id, ablation):
 
 
 def test_logger_keys():
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8})
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8}
+    )
     model.set_logger(configure(None, ["csv"]))
     seen: set[str] = set()
     original = model.logger.record
@@ -65,8 +67,12 @@ def test_multiple_envs(vec_env_cls):
 
 
 def test_callbacks_and_progress_bar(tmp_path):
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8})
-    eval_cb = EvalCallback(Monitor(gym.make("TaskAlloc/Almighty-v0")), eval_freq=5, n_eval_episodes=2, log_path=str(tmp_path), verbose=0)
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8}
+    )
+    eval_cb = EvalCallback(
+        Monitor(gym.make("TaskAlloc/Almighty-v0")), eval_freq=5, n_eval_episodes=2, log_path=str(tmp_path), verbose=0
+    )
     ckpt = CheckpointCallback(save_freq=5, save_path=str(tmp_path / "ckpt"))
     model.learn(12, callback=[eval_cb, ckpt], progress_bar=True)
     assert (tmp_path / "evaluations.npz").exists()

@@ -18,7 +18,9 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
 
 @pytest.mark.parametrize("kwargs", [{}, {"preassign": False}, {"encoder": "mlp"}, {"mixer": "global"}])
 def test_save_load_identical_predict(tmp_path, kwargs):
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=0, policy_kwargs={**SMALL, **kwargs})
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=0, policy_kwargs={**SMALL, **kwargs}
+    )
     model.learn(16)
     model.save(tmp_path / "model")
     loaded = TwoStageSAC.load(tmp_path / "model", env=gym.make("TaskAlloc/RBF-v0"))
@@ -27,7 +29,11 @@ def test_save_load_identical_predict(tmp_path, kwargs):
     for key, value in model.policy.state_dict().items():
         assert np.array_equal(value.numpy(), loaded.policy.state_dict()[key].numpy()), key
     # Entropy coefficients and optimizers come back too; training resumes.
-    assert float(loaded.log_ent_coef.detach()) == pytest.approx(float(model.log_ent_coef.detach())) if model.log_ent_coef is not None else True
+    assert (
+        float(loaded.log_ent_coef.detach()) == pytest.approx(float(model.log_ent_coef.detach()))
+        if model.log_ent_coef is not None
+        else True
+    )
     steps = loaded.num_timesteps
     loaded.learn(6, reset_num_timesteps=False)
     assert loaded.num_timesteps == steps + 6

@@ -19,7 +19,9 @@ from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, preassign_l
 
 @pytest.fixture(scope="module")
 def model() -> TwoStageSAC:
-    m = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=32, batch_size=16, seed=0, policy_kwargs={"hidden_dim": 16})
+    m = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=32, batch_size=16, seed=0, policy_kwargs={"hidden_dim": 16}
+    )
     m.learn(40)
     return m
 
@@ -49,7 +51,9 @@ def test_preassign_critic_target_and_losses(model):
     pi = model.actor(view)
     h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))
     mixed_pi = [cr.mixer((cr.scorer(view) * pi.probs).sum(-1), view) for cr in model.critic.q_networks]
-    th.testing.assert_close(actor_loss_of(model, view, alpha), (-alpha * h - th.minimum(*mixed_pi)).mean(), atol=1e-4, rtol=1e-4)
+    th.testing.assert_close(
+        actor_loss_of(model, view, alpha), (-alpha * h - th.minimum(*mixed_pi)).mean(), atol=1e-4, rtol=1e-4
+    )
     # Temperature statistics: mean per-entity entropy and ratio × log(#open tasks).
     free = view.assignable
     has = free.any(1)

@@ -210,9 +210,10 @@ class AMIXMixer(nn.Module):
     """Attention-hypernetwork mixer (AMIX with its self-attention hypernetwork SHN).
 
     SHN: X = entity features ⊙ free mask; K = k(X), Q = q(X) (linear, ``attention_dim``), V = v(X) (linear; the
-    published code used 2-layer MLPs, linear maps keep the mixer cheap for hundreds of entities); A = softmax(K Qᵀ / √d) over free entities;
-    one weight vector per entity w_i = (A V)_i. Hyper-bias b = MLP(mean of present entities' features, mean of open
-    tasks' features) gives the state value when no entity is free. hidden = ReLU(Σ_i Q_i w_i + b),
+    published code used 2-layer MLPs, linear maps keep the mixer cheap for hundreds of entities);
+    A = softmax(K Qᵀ / √d) over free entities; one weight vector per entity w_i = (A V)_i. Hyper-bias
+    b = MLP(mean of present entities' features, mean of open tasks' features) gives the state value when no entity is
+    free. hidden = ReLU(Σ_i Q_i w_i + b),
     Q_tot = MLP(hidden). Masked entities contribute nothing. ``monotonic``: |w_i| and a non-negative output layer
     (QMIX-style monotonic mixing).
 
@@ -300,7 +301,7 @@ class GlobalMixer(nn.Module):
 
     def forward(self, assign: th.Tensor, view: ObsView) -> th.Tensor:
         """:param assign: (B, N, M) one-hot pre-assignment or assignment probabilities; :return: (B,)"""
-        B, N, M = assign.shape
+        N, M = assign.shape[1:]
         if (self.n_entities, self.n_tasks) != (N, M):
             raise ValueError(
                 f'mixer="global" is size-specific: built for {self.n_entities} entities × {self.n_tasks} tasks, got {N} × {M}'

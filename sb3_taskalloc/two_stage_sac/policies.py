@@ -13,6 +13,7 @@ from torch import nn
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import (
+    NEG,
     AMIXMixer,
     FlatScorer,
     GlobalMixer,
@@ -330,9 +331,10 @@ class TAMPolicy(BasePolicy):
             self.actor = self.critic = self.critic_target = None
         self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn))
         self.selector.optimizer = self.optimizer_class(self.selector.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
-        make_heads = lambda: [
-            PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True) for _ in range(self.n_critics)
-        ]
+
+        def make_heads() -> list[PointerHead]:
+            return [PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True) for _ in range(self.n_critics)]
+
         self.select_critic = SelectCritic(make_heads())
         self.select_critic.optimizer = self.optimizer_class(self.select_critic.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
         self.select_critic_target = SelectCritic(make_heads())
@@ -362,10 +364,15 @@ class TAMPolicy(BasePolicy):
         return data
 
     def set_training_mode(self, mode: bool) -> None:
+        """Train/eval mode of the online networks (targets stay in eval mode); a no-op when unchanged, since SB3's
+        ``predict`` calls it on every decision."""
+        if getattr(self, "_mode", None) == mode:
+            return
         for module in (self.actor, self.critic, self.selector, self.select_critic):
             if module is not None:
                 module.train(mode)
         self.training = mode
+        self._mode = mode
 
     # ------------------------------------------------------------------ acting
 
@@ -376,7 +383,7 @@ class TAMPolicy(BasePolicy):
     def select_round(self, view: ObsView, task_of: th.Tensor, deterministic: bool, uniform: bool = False) -> SelectState:
         """Decode the teams of every task of one round in parallel (one pick per task per step)."""
         st = SelectState(view, task_of)
-        B, M, N = st.seg.shape
+        B, _, N = st.seg.shape
         d = None if uniform else self.selector.head.embed_entities(view)
         for t in range(N):
             if not bool(st.active.any()):
@@ -387,8 +394,11 @@ class TAMPolicy(BasePolicy):
             else:
                 task_state, dyn = st.features()
                 logits = self.selector.head(d, task_state, dyn, task_of)
-            dist = MaskedCategorical(logits.unsqueeze(1).expand(B, M, N), mask)
-            picks = dist.get_actions(deterministic)
+            scores = logits.unsqueeze(1).masked_fill(~mask, NEG)  # (B, M, N); a softmax is not needed to pick
+            if not deterministic:  # Gumbel-max sampling from softmax(scores)
+                u = th.rand_like(scores).clamp_(1e-10, 1.0 - 1e-7)
+                scores = scores - th.log(-th.log(u))
+            picks = scores.argmax(-1)
             valid = st.active.clone()
             old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
             st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
@@ -409,10 +419,7 @@ class TAMPolicy(BasePolicy):
         if self.preassign:
             # Stage 1: every free entity samples one open task (candidate sets C_j).
             assert self.actor is not None
-            if uniform:
-                dist = MaskedCategorical(th.zeros(B, N, M, device=device), view.valid)
-            else:
-                dist = self.actor(view)
+            dist = MaskedCategorical(th.zeros(B, N, M, device=device), view.valid) if uniform else self.actor(view)
             c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             st = self.select_round(view, c, deterministic, uniform)
             candidates = c.unsqueeze(1) == slots

@@ -19,7 +19,17 @@ from torch.nn import functional as F
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
 from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.two_stage_sac.policies import COVER_TOL, SelectState, TAMPolicy, check_spaces, select_features
+from sb3_taskalloc.two_stage_sac.policies import (
+    COVER_TOL,
+    PreAssignActor,
+    SelectCritic,
+    Selector,
+    SelectState,
+    TAMPolicy,
+    TwinCritic,
+    check_spaces,
+    select_features,
+)
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 
@@ -95,6 +105,12 @@ class TwoStageSAC(OffPolicyAlgorithm):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"TAMPolicy": TAMPolicy}
     policy: TAMPolicy
     replay_buffer: TwoStageReplayBuffer  # type: ignore[assignment]
+    actor: PreAssignActor | None  # type: ignore[assignment]
+    critic: TwinCritic | None
+    critic_target: TwinCritic | None
+    selector: Selector
+    select_critic: SelectCritic
+    select_critic_target: SelectCritic
 
     def __init__(
         self,
@@ -327,30 +343,25 @@ class TwoStageSAC(OffPolicyAlgorithm):
                         f"{old[key].shape[-1]}: it belongs to another family of environments"  # type: ignore[index]
                     )
             if not self.policy.size_agnostic:
+                new_size = f"{new_obs['entity_mask'].shape[0]} entities × {new_obs['task_mask'].shape[0]} tasks"  # type: ignore[index]
+                old_size = f"{old['entity_mask'].shape[0]} × {old['task_mask'].shape[0]}"  # type: ignore[index]
                 raise ValueError(
-                    "this model's policy is size-specific (encoder='mlp' or mixer='global'): it cannot run on an env with "
-                    f"{new_obs['entity_mask'].shape[0]} entities × {new_obs['task_mask'].shape[0]} tasks; it was trained "  # type: ignore[index]
-                    f"with {old['entity_mask'].shape[0]} × {old['task_mask'].shape[0]}. Use the TAM encoder and AMIX mixer to transfer"  # type: ignore[index]
+                    f"this model's policy is size-specific (encoder='mlp' or mixer='global'): it cannot run on an env with "
+                    f"{new_size}; it was trained with {old_size}. Use the TAM encoder and AMIX mixer to transfer"
                 )
             self.observation_space, self.action_space = new_obs, new_act
             self.policy.observation_space, self.policy.action_space = new_obs, new_act
-            if self.replay_buffer is not None:
-                self.replay_buffer = TwoStageReplayBuffer(  # type: ignore[assignment]
-                    self.buffer_size,
-                    new_obs,
-                    new_act,
-                    device=self.device,
-                    n_envs=env.num_envs,
-                    **(self.replay_buffer_kwargs or {}),  # type: ignore[arg-type]
-                )
-        elif self.replay_buffer is not None and self.replay_buffer.n_envs != env.num_envs:
-            self.replay_buffer = TwoStageReplayBuffer(  # type: ignore[assignment]
+        if self.replay_buffer is not None and (
+            self.replay_buffer.observation_space != new_obs or self.replay_buffer.n_envs != env.num_envs
+        ):
+            # The stored transitions have the old sizes (or env count): start a fresh buffer for fine-tuning.
+            self.replay_buffer = TwoStageReplayBuffer(
                 self.buffer_size,
-                new_obs,
+                new_obs,  # type: ignore[arg-type]
                 new_act,
                 device=self.device,
                 n_envs=env.num_envs,
-                **(self.replay_buffer_kwargs or {}),  # type: ignore[arg-type]
+                **(self.replay_buffer_kwargs or {}),
             )
         super().set_env(env, force_reset)
 
@@ -446,7 +457,7 @@ def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha: th.Tensor) -> th.Ten
 def select_rounds(policy: TAMPolicy, candidates: th.Tensor) -> list[th.Tensor]:
     """Decoding rounds of the stored decisions: one round (c from the candidate sets) with pre-assignment; one per
     task without it (the candidate sets then overlap)."""
-    B, M, N = candidates.shape
+    M = candidates.shape[1]
     if policy.preassign:
         c = th.where(candidates.any(1), candidates.float().argmax(1), -1)
         return [c]
@@ -467,13 +478,14 @@ def select_losses(
     relu(demand − Σ supplies of the first t picks), cost = Σ their pair costs, available = not picked before t), so
     all steps of all tasks of all rows are evaluated in one batched pass, with time as a leading dimension.
     """
-    parts: dict[str, list[th.Tensor]] = {}
-    for task_of in select_rounds(policy, candidates):
-        for key, value in _select_round_terms(policy, view, task_of, pick_rank, alpha).items():
-            parts.setdefault(key, []).append(value)
-    if not parts:
+    rounds = select_rounds(policy, candidates)
+    if len(rounds) > 1:  # W/o Pre: the rounds are independent given their candidate sets, so stack them as rows
+        n = len(rounds)
+        view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
+        pick_rank = pick_rank.repeat(n, 1, 1)
+    cat = _select_round_terms(policy, view, th.cat(rounds, 0), pick_rank, alpha)
+    if not cat:
         return {"n": 0}
-    cat = {key: th.cat(values) for key, values in parts.items()}
     target = (cat["reward"] + (1 - cat["done"]) * cat["v_next"]).detach()  # γ = 1 within a task
     n_critics = cat["q_sa"].shape[-1]
     critic_loss = 0.5 * sum(F.mse_loss(cat["q_sa"][:, k], target) for k in range(n_critics))
