@@ -173,8 +173,32 @@ class PairScorer(nn.Module):
         return scores
 
 
-class FlatScorer(nn.Module):
-    """The "W/o TAM" ablation: one MLP over the flattened padded inputs → N·M scores. Size-specific.
+class _FlatNet(nn.Module):
+    """MLP over flattened padded entities, tasks and one (N, M) pair tensor: the size-specific ablations."""
+
+    size_agnostic = False
+    name = ""
+
+    def __init__(
+        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, out_dim: int, hidden_dim: int, activation_fn
+    ) -> None:
+        super().__init__()
+        self.n_entities, self.n_tasks = n_entities, n_tasks
+        in_dim = n_entities * entity_dim + n_tasks * task_dim + n_entities * n_tasks
+        self.net = mlp(in_dim, hidden_dim, out_dim, activation_fn)
+
+    def flat_forward(self, view: ObsView, pair: th.Tensor) -> th.Tensor:
+        N, M = pair.shape[1:]
+        if (self.n_entities, self.n_tasks) != (N, M):
+            raise ValueError(
+                f"{self.name} is size-specific: built for {self.n_entities} entities × {self.n_tasks} tasks, got {N} × {M}; "
+                'use the size-agnostic TAM encoder and AMIX mixer (encoder="tam", mixer="amix") to transfer across sizes'
+            )
+        return self.net(th.cat([view.entity.flatten(1), view.task.flatten(1), pair.flatten(1)], dim=1))
+
+
+class FlatScorer(_FlatNet):
+    """The "W/o TAM" ablation: one MLP over the flattened padded inputs (and symlog pair costs) → N·M scores.
 
     :param n_entities: padded entity count N
     :param n_tasks: padded task count M
@@ -184,26 +208,15 @@ class FlatScorer(nn.Module):
     :param activation_fn: activation
     """
 
-    size_agnostic = False
+    name = 'encoder="mlp"'
 
     def __init__(
         self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
     ) -> None:
-        super().__init__()
-        self.n_entities, self.n_tasks = n_entities, n_tasks
-        in_dim = n_entities * entity_dim + n_tasks * task_dim + n_entities * n_tasks
-        self.net = mlp(in_dim, hidden_dim, n_entities * n_tasks, activation_fn)
+        super().__init__(n_entities, n_tasks, entity_dim, task_dim, n_entities * n_tasks, hidden_dim, activation_fn)
 
     def forward(self, view: ObsView) -> th.Tensor:
-        B, N, _ = view.entity.shape
-        M = view.task.shape[1]
-        if (self.n_entities, self.n_tasks) != (N, M):
-            raise ValueError(
-                f'encoder="mlp" is size-specific: built for {self.n_entities} entities × {self.n_tasks} tasks, got {N} × {M}; '
-                'use the size-agnostic TAM encoder (encoder="tam") to transfer across sizes'
-            )
-        x = th.cat([view.entity.flatten(1), view.task.flatten(1), symlog(view.pair_cost).flatten(1)], dim=1)
-        return self.net(x).view(B, N, M)
+        return self.flat_forward(view, symlog(view.pair_cost)).view(-1, self.n_entities, self.n_tasks)
 
 
 class AMIXMixer(nn.Module):
@@ -277,9 +290,8 @@ class AMIXMixer(nn.Module):
         return self.out(hidden).squeeze(-1)
 
 
-class GlobalMixer(nn.Module):
+class GlobalMixer(_FlatNet):
     """The "W/o AMIX" ablation: one MLP over flattened tasks, entities and the (one-hot or expected) assignment.
-    Size-specific.
 
     :param n_entities: padded entity count N
     :param n_tasks: padded task count M
@@ -289,25 +301,16 @@ class GlobalMixer(nn.Module):
     :param activation_fn: activation
     """
 
-    size_agnostic = False
+    name = 'mixer="global"'
 
     def __init__(
         self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
     ) -> None:
-        super().__init__()
-        self.n_entities, self.n_tasks = n_entities, n_tasks
-        in_dim = n_entities * entity_dim + n_tasks * task_dim + n_entities * n_tasks
-        self.net = mlp(in_dim, hidden_dim, 1, activation_fn)
+        super().__init__(n_entities, n_tasks, entity_dim, task_dim, 1, hidden_dim, activation_fn)
 
     def forward(self, assign: th.Tensor, view: ObsView) -> th.Tensor:
         """:param assign: (B, N, M) one-hot pre-assignment or assignment probabilities; :return: (B,)"""
-        N, M = assign.shape[1:]
-        if (self.n_entities, self.n_tasks) != (N, M):
-            raise ValueError(
-                f'mixer="global" is size-specific: built for {self.n_entities} entities × {self.n_tasks} tasks, got {N} × {M}'
-            )
-        x = th.cat([view.task.flatten(1), view.entity.flatten(1), assign.flatten(1)], dim=1)
-        return self.net(x).squeeze(-1)
+        return self.flat_forward(view, assign).squeeze(-1)
 
 
 #: Size of the per-step task state of the select stage (remaining demand K + 4 scalars).

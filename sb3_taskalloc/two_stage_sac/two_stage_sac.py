@@ -260,9 +260,7 @@ class TwoStageSAC(OffPolicyAlgorithm):
         if log_alpha is None or optimizer is None or entropy.numel() == 0:
             return None
         loss = (log_alpha * (entropy - target).detach()).mean()
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        _optimize(optimizer, loss)
         return loss.item()
 
     def _preassign_step(self, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples) -> dict[str, float]:
@@ -274,14 +272,10 @@ class TwoStageSAC(OffPolicyAlgorithm):
         )
         if ent_loss is not None:
             logs["ent_coef_loss"] = ent_loss
-        self.critic.optimizer.zero_grad()
-        losses["critic_loss"].backward()
-        self.critic.optimizer.step()
+        _optimize(self.critic.optimizer, losses["critic_loss"])
         # Actor loss with the critics' fresh values; critic gradients from it are discarded (zeroed next step).
         actor_loss = actor_loss_of(self, view, losses["ent_coef"])
-        self.actor.optimizer.zero_grad()
-        actor_loss.backward()
-        self.actor.optimizer.step()
+        _optimize(self.actor.optimizer, actor_loss)
         logs.update(critic_loss=losses["critic_loss"].item(), actor_loss=actor_loss.item())
         return logs
 
@@ -298,12 +292,8 @@ class TwoStageSAC(OffPolicyAlgorithm):
         )
         if ent_loss is not None:
             logs["select_ent_coef_loss"] = ent_loss
-        self.select_critic.optimizer.zero_grad()
-        losses["critic_loss"].backward()
-        self.select_critic.optimizer.step()
-        self.selector.optimizer.zero_grad()
-        losses["actor_loss"].backward()
-        self.selector.optimizer.step()
+        _optimize(self.select_critic.optimizer, losses["critic_loss"])
+        _optimize(self.selector.optimizer, losses["actor_loss"])
         logs.update(select_critic_loss=losses["critic_loss"].item(), select_actor_loss=losses["actor_loss"].item())
         return logs
 
@@ -413,6 +403,12 @@ class TwoStageSAC(OffPolicyAlgorithm):
 
 
 # ---------------------------------------------------------------------- losses (DESIGN §5 closed forms)
+
+
+def _optimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
 
 
 def preassign_losses(
