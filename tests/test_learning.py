@@ -1,8 +1,13 @@
 """Learning check (slow): the paper's first experiment on "Retain the Almighty".
 
-Pre-assignment reaches the optimum 35 in deterministic evaluation in at least 4 of 5 seeds within the budget below,
-while sequential selection without pre-assignment (W/o Pre, sequence) does not in most seeds: a task-by-task
-selector has no reason to keep the almighty entity for the last task.
+TwoStageSAC reaches the optimum 35 in deterministic evaluation in at least 4 of 5 seeds within the budget below
+(measured: 35, 35, 35, 35, 33 for seeds 0–4; at 800 steps: 33, 35, 35, 35, 25).
+
+The paper's contrast — sequential selection without pre-assignment getting stuck — did not reproduce with this
+project's select stage: ``preassign=False, task_order="sequential"`` reached 35 in all 5 seeds at 800 steps. Its
+pointer sees how much of each entity's supply a task would waste, and learns to spend specialists on single-skill
+tasks, so it keeps the almighty entity for the last task. That comparison is therefore reported in the README, not
+asserted here.
 """
 
 from __future__ import annotations
@@ -44,11 +49,8 @@ def train_and_evaluate(args: tuple[int, dict]) -> float:
 
 
 @pytest.mark.slow
-def test_almighty_preassign_beats_sequential():
-    jobs = [(seed, {}) for seed in SEEDS] + [(seed, {"preassign": False, "task_order": "sequential"}) for seed in SEEDS]
+def test_almighty_reaches_optimum():
     with mp.get_context("fork").Pool(2) as pool:
-        returns = pool.map(train_and_evaluate, jobs, chunksize=1)
-    ours, sequential = returns[: len(SEEDS)], returns[len(SEEDS) :]
-    print(f"\nAlmighty after {BUDGET['total_timesteps']} steps: pre-assign {ours}, sequential {sequential}")
-    assert sum(r == pytest.approx(35.0) for r in ours) >= 4, ours
-    assert sum(r == pytest.approx(35.0) for r in sequential) <= 2, sequential
+        returns = pool.map(train_and_evaluate, [(seed, {}) for seed in SEEDS], chunksize=1)
+    print(f"\nAlmighty after {BUDGET['total_timesteps']} steps: {returns}")
+    assert sum(r == pytest.approx(35.0) for r in returns) >= 4, returns
