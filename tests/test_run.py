@@ -89,3 +89,14 @@ def test_device_auto_is_cpu_or_cuda():
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", device="auto", policy_kwargs={"hidden_dim": 8})
     assert model.device.type in ("cpu", "cuda")
     assert next(model.policy.parameters()).device.type == model.device.type
+
+
+def test_tensorboard_log(tmp_path):
+    pytest.importorskip("tensorboard", reason="tensorboard is in the tests extra; install it to run this check")
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, tensorboard_log=str(tmp_path),
+        policy_kwargs={"hidden_dim": 8},
+    )  # fmt: skip
+    model.learn(10, log_interval=1)
+    runs = list(tmp_path.glob("TwoStageSAC_*"))
+    assert runs and list(runs[0].glob("events.out.tfevents.*"))
