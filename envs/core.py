@@ -286,12 +286,18 @@ class TaskAllocEnv(gym.Env):
         self._age = np.zeros(M, dtype=np.int64)
         self._tower = np.full(M, -1, dtype=np.int64)  # EPT: tower that is the task
         self._next_ref = 0
+        self._open_ext = np.zeros(M + 1, dtype=bool)
+        self._dist: np.ndarray | None = None
+        self._geom_dirty = True
         self._state_ready = True
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict]:
         super().reset(seed=seed)
         self._init_state()
-        self._last_action = np.full(self.max_entities, self.max_tasks, dtype=np.int64)
+        self._last_choice = (
+            np.full(self.max_entities, self.max_tasks, dtype=np.int64),
+            np.zeros(self.max_entities, dtype=bool),
+        )
         if self.arrival == "static":
             self._place(np.arange(min(len(self.tasks.rows), self.max_tasks)), use_table_positions=True)
         else:
@@ -312,6 +318,7 @@ class TaskAllocEnv(gym.Env):
             raise ValueError(f"bids must be finite and lie in [0, bid_max={self.bid_max}]")
         self._bid[:] = 0.0
         self._bid[: b.shape[0]] = b
+        self._geom_dirty = True
 
     # ------------------------------------------------------------ arrivals
 
@@ -344,17 +351,20 @@ class TaskAllocEnv(gym.Env):
                 count = min(count, max(len(candidates) - 1, 0))  # keep at least one tower as a supplier
                 towers = candidates[np.argsort(rng.random(len(candidates)))[:count]]
                 self._place(towers, use_table_positions=True)
-            else:
-                rows = rng.integers(0, len(self.tasks.rows), size=count)
-                self._place(rows, use_table_positions=False)
+            else:  # one draw for the rows and the cells
+                u = rng.random(3 * count)
+                rows = (u[:count] * len(self.tasks.rows)).astype(np.int64)
+                cells = (u[count:] * (self.grid_size or 1)).astype(np.int64).reshape(count, 2)
+                self._place(rows, use_table_positions=False, cells=cells)
 
-    def _place(self, rows: np.ndarray, use_table_positions: bool) -> None:
-        """Put table rows ``rows`` into the lowest free slots."""
+    def _place(self, rows: np.ndarray, use_table_positions: bool, cells: np.ndarray | None = None) -> None:
+        """Put table rows ``rows`` into the lowest free slots, at ``cells`` (random arrival) or their table positions."""
         rows = np.asarray(rows, dtype=np.int64)
         if len(rows) == 0:
             return
         slots = self._free_slots()[: len(rows)]
         rows = rows[: len(slots)]
+        self._geom_dirty = True
         table = self._task_rows[rows]
         self._occupied[slots] = True
         self._reward[slots] = table[:, 0]
@@ -368,9 +378,8 @@ class TaskAllocEnv(gym.Env):
         elif self.has_positions:
             if use_table_positions and self.tasks.positions is not None:
                 self._tpos[slots] = self.tasks.positions[rows]
-            else:
-                assert self.grid_size is not None
-                self._tpos[slots] = self.np_random.integers(0, self.grid_size, size=(len(slots), 2))
+            elif cells is not None:
+                self._tpos[slots] = cells[: len(slots)]
 
     # ------------------------------------------------------------- queries
 
@@ -386,23 +395,37 @@ class TaskAllocEnv(gym.Env):
         free = self._alive & ~committed
         if self.tasks.towers is not None:
             free[self._tower[self._occupied]] = False  # a tower at peak demand cannot supply
-        base = self._bid if self.bidding else self._cost0
-        if self.has_positions:
-            dist = self._distance()
-            if self.tasks.towers is not None:  # EPT: distance × mean wire cost of the pair (B3 fixed: task tower's own)
-                cost = base[:, None] + dist * (0.5 * (self._wire[:, None] + self._wire[self._tower]))
+        if self._geom_dirty:  # positions, task slots or bids changed since the last refresh
+            base = self._bid if self.bidding else self._cost0
+            if self.has_positions:
+                self._dist = self._distance()
+                if self.tasks.towers is not None:  # EPT: distance × mean wire cost of the pair (B3 fixed: task's own)
+                    self._pc = base[:, None] + self._dist * (0.5 * (self._wire[:, None] + self._wire[self._tower]))
+                else:
+                    self._pc = base[:, None] + self.travel_cost * self._dist
             else:
-                cost = base[:, None] + self.travel_cost * dist
-        else:
-            dist = None
-            cost = np.repeat(base[:, None], self.max_tasks, axis=1)
-        self._dist = dist
-        self._pc = cost
+                self._dist = None
+                self._pc = np.repeat(base[:, None], self.max_tasks, axis=1)
+            # Observation pieces that only change with the geometry (padded rows and empty slots are zero).
+            self._pc_obs = (self._pc * (self._present0[:, None] & self._occupied[None, :])).astype(np.float32)
+            K = self.K
+            ef = np.zeros((self.max_entities, K + 5), dtype=np.float32)
+            ef[:, 0] = base * self._alive
+            ef[:, 1 : 1 + K] = self._supply
+            ef[:, 1 + K : 3 + K] = self._pos
+            ef[:, 4 + K] = self._bid
+            self._ef_static = ef
+            self._geom_dirty = False
         self._rem = rem
         self._free = free
         self._open = self._occupied & (rem > EPS).any(1)
-        self._open_ext = np.append(self._open, False)  # indexed by an action: "unassigned" (M) is never a task
+        self._open_ext[: self.max_tasks] = self._open  # indexed by an action: "unassigned" (M) is never a task
         self._committed = committed
+
+    def applied_action(self) -> np.ndarray:
+        """(N,) the last action as the env applied it: mask-violating choices replaced by "unassigned" (M)."""
+        a, valid = self._last_choice
+        return np.where(valid, a, self.max_tasks)
 
     def action_masks(self) -> np.ndarray:
         """Flat (N·(M+1),) boolean mask in sb3-contrib's MultiDiscrete layout (used by MaskablePPO)."""
@@ -417,31 +440,25 @@ class TaskAllocEnv(gym.Env):
     def _obs(self) -> dict[str, np.ndarray]:
         # Padded entities and empty slots hold zeros in every state array, so no masking is needed here.
         self._refresh()
-        N, M, K = self.max_entities, self.max_tasks, self.K
+        M, K = self.max_tasks, self.K
         f32 = np.float32
-        ef = np.empty((N, K + 5), dtype=f32)
-        ef[:, 0] = (self._bid if self.bidding else self._cost0) * self._alive
-        ef[:, 1 : 1 + K] = self._supply
-        ef[:, 1 + K : 3 + K] = self._pos
+        ef = self._ef_static.copy()  # cost, supply, position, bid: refreshed with the geometry
         if self._dist is not None and self.travel != "none":
             ef[:, 3 + K] = (self._dist[self._entity_index, self._assigned] + 1.0) * self._committed
         else:
             ef[:, 3 + K] = self._committed
-        ef[:, 4 + K] = self._bid
         tf = np.empty((M, K + 4), dtype=f32)
         tf[:, 0] = self._reward
         tf[:, 1 : 1 + K] = self._rem
         tf[:, 1 + K : 3 + K] = self._tpos
         tf[:, 3 + K] = self._age
-        pc = self._pc * self._present0[:, None]
-        pc *= self._occupied
         return {
             "entity_features": ef,
             "task_features": tf,
-            "entity_supply": self._supply.astype(f32),
+            "entity_supply": ef[:, 1 : 1 + K].copy(),
             "task_demand": tf[:, 1 : 1 + K].copy(),
             "task_reward": tf[:, 0].copy(),
-            "pair_cost": pc.astype(f32),
+            "pair_cost": self._pc_obs.copy(),
             "entity_mask": self._free.astype(np.int8),
             "task_mask": self._open.astype(np.int8),
             "action_mask": self._action_mask(self._free, self._open),
@@ -459,8 +476,14 @@ class TaskAllocEnv(gym.Env):
     # ----------------------------------------------------------------- step
 
     def _validate_action(self, action: Any) -> np.ndarray:
-        a = np.asarray(action)
         N, M = self.max_entities, self.max_tasks
+        if type(action) is np.ndarray and action.dtype == np.int64 and action.shape == (N,):  # fast path
+            if action.min() < 0 or action.max() > M:
+                raise ValueError(
+                    f"action values must lie in [0, {M}] (M = {M} means 'unassigned'), got [{action.min()}, {action.max()}]"
+                )
+            return action
+        a = np.asarray(action)
         if a.shape != (N,):
             if a.size != N:
                 raise ValueError(f"action must have shape ({N},) (one task slot per entity), got shape {a.shape}")
@@ -489,7 +512,7 @@ class TaskAllocEnv(gym.Env):
         if n_invalid and self.strict:
             bad = np.flatnonzero(chosen & ~valid)
             raise ValueError(f"assignments of entities {bad.tolist()} violate the action mask (strict=True)")
-        self._last_action = np.where(valid, a, M)
+        self._last_choice = (a, valid)  # the action as applied (for rendering), see :meth:`applied_action`
 
         # Commit: the pair cost is fixed when the entity is assigned (DESIGN §3 pair_cost).
         idx = np.flatnonzero(valid)
@@ -507,12 +530,14 @@ class TaskAllocEnv(gym.Env):
                 move[:, 0] *= move[:, 1] == 0
             move *= committed[:, None]
             self._pos += move
+            self._geom_dirty = True
             working = np.where(arrived, self._assigned, -1)
         else:
             working = self._assigned
         onehot = self._eye[working]
         contrib = onehot.T @ self._supply
-        complete = self._occupied & (contrib >= self._demand - EPS).all(1) & onehot.any(0)
+        # Occupied tasks always have a positive demand, so covering it implies some arrived supply.
+        complete = self._occupied & (contrib >= self._demand - EPS).all(1) & contrib.any(1)
 
         rewards = costs = 0.0
         n_complete = 0
@@ -527,6 +552,7 @@ class TaskAllocEnv(gym.Env):
             if self.consume:
                 self._alive &= ~team
                 self._supply[team] = 0.0
+                self._geom_dirty = True
             self._assigned[team] = -1
             self._charge[team] = 0.0
             self._occupied &= ~complete
@@ -535,6 +561,7 @@ class TaskAllocEnv(gym.Env):
             self._demand *= keep[:, None]
             self._base_demand *= keep[:, None]
             self._tpos *= keep[:, None]
+            self._geom_dirty = True
             self._age *= keep
             self._tower[complete] = -1
         if not self.busy:  # never busy: assignments last one step

@@ -48,7 +48,7 @@ def render_rgb(env: TaskAllocEnv) -> np.ndarray:
             draw.line([(p, MARGIN), (p, SIZE - MARGIN)], fill=(235, 235, 235))
             draw.line([(MARGIN, p), (SIZE - MARGIN, p)], fill=(235, 235, 235))
     ent, task = _layout(env)
-    assigned = env._assigned if env.busy else env._last_action
+    assigned = env._assigned if env.busy else env.applied_action()
     for i in np.flatnonzero(env._present0).tolist():
         slot = int(assigned[i])
         if 0 <= slot < env.max_tasks and env._occupied[slot]:
