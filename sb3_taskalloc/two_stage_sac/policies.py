@@ -448,7 +448,8 @@ class TAMPolicy(BasePolicy):
         return Decision(env_action_of(rank, kept), candidates, rank, kept)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self.decide(self.parse(observation), deterministic).env_action
+        with th.inference_mode():  # cheaper than SB3's no_grad for the sequential decoding
+            return self.decide(self.parse(observation), deterministic).env_action
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)

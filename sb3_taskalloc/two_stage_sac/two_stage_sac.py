@@ -216,7 +216,7 @@ class TwoStageSAC(OffPolicyAlgorithm):
         assert self._last_obs is not None, "self._last_obs was not set"
         uniform = self.num_timesteps < learning_starts
         self.policy.set_training_mode(False)
-        with th.no_grad():
+        with th.inference_mode():
             view = self.policy.parse(obs_as_tensor(self._last_obs, self.device))  # type: ignore[arg-type]
             decision = self.policy.decide(view, deterministic=False, uniform=uniform)
         action = decision.env_action.cpu().numpy()
