@@ -95,3 +95,12 @@ def test_wrong_env_family_refused(tmp_path):
         TwoStageSAC.load(tmp_path / "rbf", env=gym.make("TaskAlloc/Almighty-v0"))
     with pytest.raises((ValueError, AssertionError), match="MultiDiscrete"):
         TwoStageSAC("TAMPolicy", "CartPole-v1")
+
+
+def test_vec_normalize_refused():
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    venv = VecNormalize(make_vec_env("TaskAlloc/Almighty-v0", n_envs=1), norm_obs=False)
+    with pytest.raises(ValueError, match="VecNormalize"):
+        TwoStageSAC("TAMPolicy", venv)

@@ -7,7 +7,6 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -177,6 +176,11 @@ class TwoStageSAC(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         if self.observation_space is not None:
             check_spaces(self.observation_space, self.action_space)
+        if self._vec_normalize_env is not None:
+            raise ValueError(
+                "VecNormalize is not supported by TwoStageSAC: TAMPolicy normalises its inputs itself (symlog) and needs the "
+                "raw masks, demands and costs; remove the VecNormalize wrapper"
+            )
         super()._setup_model()
         self._create_aliases()
         self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
@@ -367,8 +371,8 @@ class TwoStageSAC(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfTwoStageSAC:
         """Load a model; ``env`` may have other entity/task counts when the policy is size-agnostic (see :meth:`set_env`)."""
-        model = BaseAlgorithm.load.__func__(  # type: ignore[attr-defined]
-            cls, path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
+        model = super().load(
+            path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
         )
         if env is not None:
             model.set_env(env, force_reset)
