@@ -22,6 +22,7 @@ def main(argv: list[str] | None = None) -> None:
     import gymnasium as gym
     import numpy as np
     import torch as th
+    from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
     from stable_baselines3.common.monitor import Monitor
 
@@ -47,8 +48,7 @@ def main(argv: list[str] | None = None) -> None:
 
     results = {}
     for name, agent in (("TwoStageSAC", model), ("Greedy", GreedyAllocator()), ("Random", RandomAllocator(args.seed))):
-        eval_env = Monitor(gym.make(args.env))
-        eval_env.reset(seed=10_000 + args.seed)
+        eval_env = make_vec_env(args.env, n_envs=1, seed=10_000 + args.seed)  # same evaluation episodes for every agent
         mean, std = evaluate_policy(agent, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)  # type: ignore[arg-type]
         results[name] = (float(mean), float(std))  # type: ignore[arg-type]
     print(f"\n{args.env}: return over {args.eval_episodes} evaluation episodes (train {args.steps} steps, {train_s:.0f} s)")
