@@ -7,7 +7,7 @@ configured by data tables and keyword arguments (``envs/almighty.py``, ``ept.py`
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
@@ -64,7 +64,6 @@ class EntityTable:
     supply: np.ndarray
     positions: np.ndarray | None = None
     wire_cost: np.ndarray | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.cost = np.asarray(self.cost, dtype=np.float64).reshape(-1)

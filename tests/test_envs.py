@@ -85,7 +85,7 @@ class Tracker:
         self.task_of: dict[int, int] = {}
         self.charge: dict[int, float] = {}
 
-    def step(self, obs, action, rng):
+    def step(self, obs, action):
         env = self.env
         M = env.max_tasks
         emask, tmask = obs["entity_mask"].astype(bool), obs["task_mask"].astype(bool)
@@ -134,7 +134,7 @@ def test_random_actions_keep_invariants(env_id):
         for _ in range(200):
             # Half arbitrary in-space actions (mask violations included), half valid allocations.
             action = env.action_space.sample() if rng.random() < 0.5 else random_valid_action(obs, rng)
-            obs, done = tracker.step(obs, action, rng)
+            obs, done = tracker.step(obs, action)
             if done:
                 break
 

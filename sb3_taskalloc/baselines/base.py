@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 
@@ -33,6 +31,3 @@ class Allocator:
 
     def reset(self, seed: int | None = None) -> None:
         """Reset internal state (planners); stateless allocators ignore it."""
-
-    def __call__(self, obs: dict[str, np.ndarray]) -> Any:
-        return self.predict(obs)[0]

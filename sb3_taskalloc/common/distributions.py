@@ -28,22 +28,15 @@ class MaskedCategorical:
         """(...) entropy −Σ_c p_c log p_c (0 for empty rows)."""
         return -(self.probs * self.log_probs).sum(-1)
 
-    def sample(self) -> th.Tensor:
-        """(...) index drawn by the Gumbel-max trick (uses torch's global RNG, so ``set_random_seed`` applies)."""
-        u = th.rand_like(self.logits).clamp_(1e-10, 1.0 - 1e-7)
-        return th.argmax(self.logits - th.log(-th.log(u)), dim=-1)
-
-    def mode(self) -> th.Tensor:
-        """(...) most probable index."""
-        return th.argmax(self.logits, dim=-1)
-
     def get_actions(self, deterministic: bool) -> th.Tensor:
-        return self.mode() if deterministic else self.sample()
+        """(...) the most probable index, or one drawn by the Gumbel-max trick (see :func:`masked_pick`)."""
+        return masked_pick(self.logits, deterministic)
 
-    def log_prob(self, index: th.Tensor) -> th.Tensor:
-        """(...) log-probability of ``index`` (0 for empty rows)."""
-        return th.gather(self.log_probs, -1, index.clamp_min(0).unsqueeze(-1)).squeeze(-1)
 
-    def expectation(self, values: th.Tensor) -> th.Tensor:
-        """(...) Σ_c p_c · values_c."""
-        return (self.probs * values).sum(-1)
+def masked_pick(masked_logits: th.Tensor, deterministic: bool) -> th.Tensor:
+    """Index along the last axis: argmax of logits already filled with ``NEG`` where masked, or a sample of their
+    softmax by the Gumbel-max trick (torch's global RNG, so ``set_random_seed`` applies). No softmax is computed."""
+    if not deterministic:
+        u = th.rand_like(masked_logits).clamp_(1e-10, 1.0 - 1e-7)
+        masked_logits = masked_logits - th.log(-th.log(u))
+    return th.argmax(masked_logits, dim=-1)

@@ -11,7 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.distributions import MaskedCategorical, masked_pick
 from sb3_taskalloc.common.torch_layers import (
     NEG,
     AMIXMixer,
@@ -394,11 +394,7 @@ class TAMPolicy(BasePolicy):
             else:
                 task_state, dyn = st.features()
                 logits = self.selector.head(d, task_state, dyn, task_of)
-            scores = logits.unsqueeze(1).masked_fill(~mask, NEG)  # (B, M, N); a softmax is not needed to pick
-            if not deterministic:  # Gumbel-max sampling from softmax(scores)
-                u = th.rand_like(scores).clamp_(1e-10, 1.0 - 1e-7)
-                scores = scores - th.log(-th.log(u))
-            picks = scores.argmax(-1)
+            picks = masked_pick(logits.unsqueeze(1).masked_fill(~mask, NEG), deterministic)  # (B, M)
             valid = st.active.clone()
             old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
             st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
