@@ -54,6 +54,19 @@ def test_preassign_critic_target_and_losses(model):
     th.testing.assert_close(
         actor_loss_of(model, view, alpha), (-alpha * h - th.minimum(*mixed_pi)).mean(), atol=1e-4, rtol=1e-4
     )
+    # Frozen critics: the actor loss reaches the actor's parameters with the same gradient as the unfrozen formula
+    # (and reusing the distribution changes nothing), and leaves no gradient on the critics.
+    for net in (model.actor, model.critic):
+        net.zero_grad(set_to_none=True)
+    (-alpha * h - th.minimum(*mixed_pi)).mean().backward()
+    expected_grads = [p.grad.clone() for p in model.actor.parameters()]
+    for net in (model.actor, model.critic):
+        net.zero_grad(set_to_none=True)
+    actor_loss_of(model, view, alpha, model.actor(view)).backward()
+    for p, g in zip(model.actor.parameters(), expected_grads, strict=True):
+        th.testing.assert_close(p.grad, g, atol=1e-5, rtol=1e-4)
+    assert all(p.grad is None for p in model.critic.parameters())
+    assert all(p.requires_grad for p in model.critic.parameters())
     # Temperature statistics: mean per-entity entropy and ratio × log(#open tasks).
     free = view.assignable
     has = free.any(1)

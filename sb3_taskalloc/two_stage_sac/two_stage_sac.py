@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -56,6 +58,8 @@ class TwoStageSAC(OffPolicyAlgorithm):
        learning signal (the published code regressed internal select returns instead, reference spec B27).
     3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
        (true entropy and expectation over actions; the published code used −Σ log p and p·Q of the taken action, B1).
+       The actor loss is built with the critics frozen (their scores and hyper-weights are constants of it), so its
+       backward pass never runs through the critic networks.
     4. α auto-tuned (``ent_coef="auto"``): loss log α·(H̄(s) − H̄*), H̄ = mean per-entity entropy,
        H̄* = ``target_entropy_ratio`` × mean_i log(#valid tasks of i); or fixed (paper: 0.05).
     5. Select stage: a short MDP per task computed from the observation (state = remaining demand and picked set;
@@ -277,8 +281,8 @@ class TwoStageSAC(OffPolicyAlgorithm):
         if ent_loss is not None:
             logs["ent_coef_loss"] = ent_loss
         _optimize(self.critic.optimizer, losses["critic_loss"])
-        # Actor loss with the critics' fresh values; critic gradients from it are discarded (zeroed next step).
-        actor_loss = actor_loss_of(self, view, losses["ent_coef"])
+        # Actor loss with the critics' fresh values (the actor has not changed: its distribution is reused).
+        actor_loss = actor_loss_of(self, view, losses["ent_coef"], losses["dist"])
         _optimize(self.actor.optimizer, actor_loss)
         logs.update(critic_loss=losses["critic_loss"].item(), actor_loss=actor_loss.item())
         return logs
@@ -409,6 +413,19 @@ class TwoStageSAC(OffPolicyAlgorithm):
 # ---------------------------------------------------------------------- losses (DESIGN §5 closed forms)
 
 
+@contextmanager
+def frozen(module: th.nn.Module) -> Iterator[None]:
+    """Treat ``module``'s parameters as constants inside the block (no gradient, no backward pass through it)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
 def _optimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
     optimizer.zero_grad()
     loss.backward()
@@ -439,6 +456,7 @@ def preassign_losses(
     critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
     return {
         "critic_loss": critic_loss,  # type: ignore[dict-item]
+        "dist": dist,  # type: ignore[dict-item]
         "target_q": target_q,
         "ent_coef": alpha,
         "mean_entropy": mean_entropy,
@@ -446,11 +464,19 @@ def preassign_losses(
     }
 
 
-def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha: th.Tensor) -> th.Tensor:
-    """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))."""
+def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha: th.Tensor, dist: MaskedCategorical | None = None) -> th.Tensor:
+    """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)).
+
+    The critics are frozen while it is built, so autograd records only the path through π (the per-entity scores
+    and the mixer's hyper-weights are constants of the actor loss): no backward pass through the critic networks.
+
+    :param dist: the actor's distribution on ``view`` when already computed (else computed here)
+    """
     assert model.actor is not None and model.critic is not None
-    dist = model.actor(view)
-    q_pi = th.stack(model.critic(view, dist.probs), dim=0).min(0).values
+    if dist is None:
+        dist = model.actor(view)
+    with frozen(model.critic):
+        q_pi = th.stack(model.critic(view, dist.probs), dim=0).min(0).values
     return (-alpha * dist.entropy().sum(1) - q_pi).mean()
 
 
