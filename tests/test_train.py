@@ -169,6 +169,33 @@ def test_abandoned_when_unprofitable():
     assert st.covered.all() and not st.kept().any()
 
 
+@pytest.mark.parametrize(
+    ("reward", "demand", "expect_start"),
+    [(10.0, 2.0, True), (0.5, 2.0, False), (10.0, 5.0, False)],  # cheapest candidate costs 1; supplies add up to 4
+)
+def test_decoding_starts_only_when_task_can_be_kept(reward, demand, expect_start):
+    view = hand_view(reward=reward)
+    view = view._replace(demand=th.full_like(view.demand, demand))
+    st = SelectState(view, th.zeros(1, 3, dtype=th.long))
+    assert bool(st.active[0, 0]) == expect_start
+
+
+def test_decoding_stops_once_task_cannot_be_kept():
+    view = hand_view(reward=1.5)  # after one pick of cost 1, covering needs another pick of cost ≥ 1: 1 + 1 ≥ 1.5
+    st = SelectState(view, th.zeros(1, 3, dtype=th.long))
+    assert st.active.all()
+    _, done = st.advance(th.tensor([[0]]), th.tensor([[True]]))
+    assert done.all() and not st.covered.any() and not st.active.any()
+    view = hand_view(reward=10.0)._replace(demand=th.tensor([[[4.0]]]))  # needs every entity
+    st = SelectState(view, th.zeros(1, 3, dtype=th.long))
+    _, done = st.advance(th.tensor([[0]]), th.tensor([[True]]))
+    assert not done.any()  # 1 + 2 still cover the remaining 3
+    _, done = st.advance(th.tensor([[1]]), th.tensor([[True]]))
+    assert not done.any()
+    _, done = st.advance(th.tensor([[2]]), th.tensor([[True]]))
+    assert done.all() and st.covered.all() and st.kept().all()
+
+
 def test_entropy_coefficient_specs():
     with pytest.raises(ValueError, match="ent_coef"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef="sometimes")

@@ -60,9 +60,9 @@ class SelectState:
         self.cost = th.zeros(B, M, device=task_of.device)
         self.npick = th.zeros(B, M, device=task_of.device)
         self.covered = th.zeros(B, M, dtype=th.bool, device=task_of.device)
-        self.active = self.seg.any(-1) & view.task_mask
         self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
         self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
+        self.active = view.task_mask & still_winnable(view, self.seg, self.avail, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
         """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
@@ -88,14 +88,33 @@ class SelectState:
         self.covered = self.covered | newly
         picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
         self.avail = self.avail & ~picked
-        left = (self.seg & self.avail.unsqueeze(1)).any(-1)
-        done = valid & (newly | ~left)
+        done = valid & (newly | ~still_winnable(v, self.seg, self.avail, self.pc_own, self.rem, self.cost))
         self.active = self.active & ~done
         return reward, done
 
     def kept(self) -> th.Tensor:
         """(B, M) tasks whose internal profit (reward if covered − Σ pair costs) is positive; others are abandoned."""
         return self.covered & (self.view.reward - self.cost > 0)
+
+
+def still_winnable(
+    view: ObsView, seg: th.Tensor, avail: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor
+) -> th.Tensor:
+    """Whether each uncovered task can still be kept: its available candidates can cover the remaining demand, and
+    the cost so far plus the cheapest available candidate stays below the reward (covering needs at least one more
+    pick). A task that cannot is abandoned at once (its decoding stops): pair costs are non-negative (DESIGN §3), so
+    it would end uncovered or unprofitable anyway and the env action is the same as decoding on. Feasibility needs no
+    per-pair minimum: Σ_i min(s_ik, d_k) ≥ d_k holds exactly when Σ_i s_ik ≥ d_k.
+
+    :param seg: (B, M, N) candidates of each task; :param avail: (..., B, N) not picked yet
+    :param pc_own: (B, N) pair cost of each entity for the task it is a candidate of
+    :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) pair costs of the picks so far
+    :return: (..., B, M) bool
+    """
+    cand = seg & avail.unsqueeze(-2)  # (..., B, M, N)
+    supply_left = cand.float() @ view.supply  # (..., B, M, K)
+    cheapest = pc_own.unsqueeze(-2).masked_fill(~cand, th.inf).amin(-1)  # (..., B, M); inf without candidates
+    return (supply_left >= rem - COVER_TOL).all(-1) & (view.reward - cost - cheapest > 0)
 
 
 def select_features(
