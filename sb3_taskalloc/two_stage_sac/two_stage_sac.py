@@ -438,8 +438,8 @@ def _optimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
 
 def preassign_losses(
     model: TwoStageSAC, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples
-) -> dict[str, th.Tensor]:
-    """Stage-1 critic loss and temperature statistics (implementation details 2–4)."""
+) -> dict[str, Any]:
+    """Stage-1 critic loss, temperature statistics and the actor's distribution on ``view`` (implementation details 2–4)."""
     assert model.actor is not None and model.critic is not None and model.critic_target is not None
     free = view.assignable
     dist = model.actor(view)
@@ -459,8 +459,8 @@ def preassign_losses(
     current = model.critic(view, assign)
     critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
     return {
-        "critic_loss": critic_loss,  # type: ignore[dict-item]
-        "dist": dist,  # type: ignore[dict-item]
+        "critic_loss": critic_loss,
+        "dist": dist,
         "target_q": target_q,
         "ent_coef": alpha,
         "mean_entropy": mean_entropy,
