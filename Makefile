@@ -3,7 +3,8 @@ PYTHON ?= python3
 VENV ?= .venv
 # The CPU build available locally; override e.g. `make setup TORCH_SPEC="torch==2.5.1"` (a plain `torch` pulls CUDA).
 TORCH_SPEC ?= torch==2.13.0
-EXTRAS ?= tests
+# The tests cover the rl-zoo3 launcher, so its extra is installed too.
+EXTRAS ?= tests,zoo
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(EXTRAS)
 export OMP_NUM_THREADS ?= 1

@@ -196,6 +196,15 @@ def test_decoding_stops_once_task_cannot_be_kept():
     assert done.all() and st.covered.all() and st.kept().all()
 
 
+def test_useless_candidates_are_never_choices():
+    # Two resources: entities 0 and 1 bring only the first, entity 2 only the second; the task needs one of each.
+    view = hand_view()._replace(supply=th.tensor([[[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]]]), demand=th.tensor([[[1.0, 1.0]]]))
+    st = SelectState(view, th.zeros(1, 3, dtype=th.long))
+    assert st.choice_mask()[0, 0].tolist() == [True, True, True]
+    st.advance(th.tensor([[0]]), th.tensor([[True]]))
+    assert st.choice_mask()[0, 0].tolist() == [False, False, True]  # entity 1 would add cost and cover nothing
+
+
 def test_entropy_coefficient_specs():
     with pytest.raises(ValueError, match="ent_coef"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef="sometimes")

@@ -62,7 +62,8 @@ class SelectState:
         self.covered = th.zeros(B, M, dtype=th.bool, device=task_of.device)
         self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
         self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
-        self.active = view.task_mask & still_winnable(view, self.seg, self.avail, self.pc_own, self.rem, self.cost)
+        self.choosable = self.avail & (useful_supply(view, task_of, self.rem)[0] > COVER_TOL)  # (B, N)
+        self.active = view.task_mask & still_winnable(view, self.seg, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
         """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
@@ -70,7 +71,7 @@ class SelectState:
 
     def choice_mask(self) -> th.Tensor:
         """(B, M, N) entities task j may pick now."""
-        return self.seg & self.avail.unsqueeze(1) & self.active.unsqueeze(-1)
+        return self.seg & self.choosable.unsqueeze(1) & self.active.unsqueeze(-1)
 
     def advance(self, picks: th.Tensor, valid: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Apply one pick per task. :param picks: (B, M) entity index; :param valid: (B, M) rows that pick.
@@ -88,7 +89,8 @@ class SelectState:
         self.covered = self.covered | newly
         picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
         self.avail = self.avail & ~picked
-        done = valid & (newly | ~still_winnable(v, self.seg, self.avail, self.pc_own, self.rem, self.cost))
+        self.choosable = self.avail & (useful_supply(v, self.task_of, rem)[0] > COVER_TOL)
+        done = valid & (newly | ~still_winnable(v, self.seg, self.choosable, self.pc_own, self.rem, self.cost))
         self.active = self.active & ~done
         return reward, done
 
@@ -97,21 +99,34 @@ class SelectState:
         return self.covered & (self.view.reward - self.cost > 0)
 
 
-def still_winnable(
-    view: ObsView, seg: th.Tensor, avail: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor
-) -> th.Tensor:
-    """Whether each uncovered task can still be kept: its available candidates can cover the remaining demand, and
-    the cost so far plus the cheapest available candidate stays below the reward (covering needs at least one more
-    pick). A task that cannot is abandoned at once (its decoding stops): pair costs are non-negative (DESIGN §3), so
-    it would end uncovered or unprofitable anyway and the env action is the same as decoding on. Feasibility needs no
-    per-pair minimum: Σ_i min(s_ik, d_k) ≥ d_k holds exactly when Σ_i s_ik ≥ d_k.
+def useful_supply(view: ObsView, task_of: th.Tensor, rem: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """What each candidate would contribute to its task now: Σ_k min(s_ik, d_jk) for j = its task.
 
-    :param seg: (B, M, N) candidates of each task; :param avail: (..., B, N) not picked yet
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param rem: (..., B, M, K) remaining demand
+    :return: the useful supply (..., B, N) and the remaining demand of each entity's task (..., B, N, K)
+    """
+    idx = task_of.clamp_min(0).expand(*rem.shape[:-3], -1, -1)
+    rem_i = th.gather(rem, -2, idx.unsqueeze(-1).expand(*idx.shape, rem.shape[-1]))
+    return th.minimum(view.supply, rem_i).sum(-1), rem_i
+
+
+def still_winnable(
+    view: ObsView, seg: th.Tensor, choosable: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor
+) -> th.Tensor:
+    """Whether each uncovered task can still be kept: its choosable candidates can cover the remaining demand, and
+    the cost so far plus the cheapest of them stays below the reward (covering needs at least one more pick). A task
+    that cannot is abandoned at once (its decoding stops): pair costs are non-negative (DESIGN §3), so it would end
+    uncovered or unprofitable anyway and the env action is the same as decoding on. Feasibility needs no per-pair
+    minimum: Σ_i min(s_ik, d_k) ≥ d_k holds exactly when Σ_i s_ik ≥ d_k.
+
+    :param seg: (B, M, N) candidates of each task
+    :param choosable: (..., B, N) not picked yet and useful to their task (:func:`useful_supply` > 0)
     :param pc_own: (B, N) pair cost of each entity for the task it is a candidate of
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) pair costs of the picks so far
     :return: (..., B, M) bool
     """
-    cand = seg & avail.unsqueeze(-2)  # (..., B, M, N)
+    cand = seg & choosable.unsqueeze(-2)  # (..., B, M, N)
     supply_left = cand.float() @ view.supply  # (..., B, M, K)
     cheapest = pc_own.unsqueeze(-2).masked_fill(~cand, th.inf).amin(-1)  # (..., B, M); inf without candidates
     return (supply_left >= rem - COVER_TOL).all(-1) & (view.reward - cost - cheapest > 0)
@@ -141,10 +156,8 @@ def select_features(
         ],
         dim=-1,
     )
-    lead = rem.shape[:-3]
-    idx = task_of.clamp_min(0).expand(*lead, -1, -1)
-    rem_i = th.gather(rem, -2, idx.unsqueeze(-1).expand(*idx.shape, rem.shape[-1]))  # (..., B, N, K): own task's demand
-    useful = th.minimum(view.supply, rem_i).sum(-1)
+    idx = task_of.clamp_min(0).expand(*rem.shape[:-3], -1, -1)
+    useful, rem_i = useful_supply(view, task_of, rem)
     cov = useful / rem_i.sum(-1).clamp_min(1e-6)
     waste = 1.0 - useful / view.supply.sum(-1).clamp_min(1e-6)
     margin = th.gather(reward - cost, -1, idx) - pc_own

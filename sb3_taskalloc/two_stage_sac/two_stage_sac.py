@@ -31,6 +31,7 @@ from sb3_taskalloc.two_stage_sac.policies import (
     check_spaces,
     select_features,
     still_winnable,
+    useful_supply,
 )
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
@@ -68,10 +69,11 @@ class TwoStageSAC(OffPolicyAlgorithm):
        SAC: Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})];
        actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)]. Transitions are re-derived from the stored
        (observation, candidate sets, pick order); TD targets are detached and use the target critic (B2 fixed); the
-       published code updated it online with batch 1 (B25). A task's decoding stops as soon as it can no longer be
-       kept: its available candidates cannot cover the remaining demand, or the cost so far plus the cheapest
-       candidate reaches the reward. Pair costs are non-negative, so the env action is the one full decoding would
-       give; the loop and the select-stage transitions get shorter (``still_winnable``).
+       published code updated it online with batch 1 (B25). Two exact prunings (pair costs are non-negative): a
+       candidate that covers none of the remaining demand is not a choice (it could only add cost), and a task's
+       decoding stops as soon as it can no longer be kept: its choosable candidates cannot cover the remaining
+       demand, or the cost so far plus the cheapest of them reaches the reward (``still_winnable``); that task would
+       have been abandoned anyway. The loop and the select-stage transitions get shorter.
     6. Pointer: logits u_i = d_i·e_j^t/√d + φ(x_i^t), a dot-product pointer instead of the paper's additive
        vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step: ~10× cheaper to train);
        e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
@@ -553,9 +555,11 @@ def _select_round_terms(
     tt = t.view(-1, 1, 1)
     avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
     avail_after = cand & ((rank_own < 0) | (rank_own > tt))
-    mask = st.seg & avail.unsqueeze(2) & valid.unsqueeze(-1)
+    choosable = avail & (useful_supply(view, task_of, rem)[0] > COVER_TOL)
+    choosable_after = avail_after & (useful_supply(view, task_of, rem_after)[0] > COVER_TOL)
+    mask = st.seg & choosable.unsqueeze(2) & valid.unsqueeze(-1)
     newly = valid & (rem_after <= COVER_TOL).all(-1)
-    done = valid & (newly | ~still_winnable(view, st.seg, avail_after, st.pc_own, rem_after, pc_cum))
+    done = valid & (newly | ~still_winnable(view, st.seg, choosable_after, st.pc_own, rem_after, pc_cum))
     reward = valid.float() * (-pc + view.reward * newly.float())
 
     task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())

@@ -1,0 +1,145 @@
+"""Optuna sampler and study runner (DESIGN §9): valid models, pruning, shared journal studies, kill and restart."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import optuna
+import pytest
+import yaml
+from optuna.trial import TrialState
+
+from sb3_taskalloc import TwoStageSAC
+from tuning import study as runner
+from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
+
+ROOT = Path(__file__).resolve().parents[1]
+FIXED = {
+    "learning_rate": 1e-3,
+    "one_minus_gamma": 0.02,
+    "tau": 0.01,
+    "batch_size_pow": 4,
+    "select_batch_size_pow": 3,
+    "learning_starts": 0,
+    "target_entropy_ratio": 0.2,
+    "hidden_dim": 32,
+    "n_attention_layers": 1,
+}
+
+
+def test_sampler_under_fixed_trial_builds_a_valid_model():
+    trial = optuna.trial.FixedTrial(FIXED)
+    kwargs = sample_two_stage_sac_params(trial, 25, 1, {})
+    assert kwargs == convert_two_stage_sac_params(FIXED)
+    assert kwargs["gamma"] == pytest.approx(0.98) and kwargs["batch_size"] == 16 and kwargs["select_batch_size"] == 8
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, **kwargs)
+    assert model.policy.hidden_dim == 32 and model.policy.n_attention_layers == 1 and model.gamma == pytest.approx(0.98)
+    model.learn(20)
+    assert model._n_updates == 20
+
+
+def test_sampled_values_stay_in_their_spaces():
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(30):
+        kwargs = sample_two_stage_sac_params(study.ask(), 25, 1, {})
+        assert 0.9 <= kwargs["gamma"] <= 0.999 and 3e-5 <= kwargs["learning_rate"] <= 3e-3
+        assert kwargs["batch_size"] in (16, 32, 64, 128) and kwargs["select_batch_size"] in (4, 8, 16, 32)
+        assert all(isinstance(v, int | float | str | bool | dict) for v in kwargs.values())  # pastes into YAML
+
+
+def test_eval_callback_prunes_on_nan_and_on_the_pruner():
+    study = optuna.create_study(pruner=optuna.pruners.ThresholdPruner(lower=1e9))  # prunes every report
+    trial = study.ask()
+    eval_env = gym.make("TaskAlloc/Almighty-v0")
+    callback = runner.TrialEvalCallback(eval_env, trial, n_eval_episodes=1, eval_freq=5)
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, learning_starts=100)
+    model.learn(50, callback=callback)
+    assert callback.is_pruned and model.num_timesteps == 5
+    nan_env = gym.wrappers.TransformReward(gym.make("TaskAlloc/Almighty-v0"), lambda r: math.nan)
+    callback = runner.TrialEvalCallback(nan_env, optuna.create_study().ask(), n_eval_episodes=1, eval_freq=5)
+    model.learn(50, callback=callback)
+    assert callback.is_pruned and np.isnan(callback.last_mean_reward)
+
+
+def worker_args(tmp_path: Path, n_trials: int, n_timesteps: int = 40) -> list[str]:
+    return [
+        "--env", "TaskAlloc/Almighty-v0", "--n-trials", str(n_trials), "--n-timesteps", str(n_timesteps),
+        "--n-evaluations", "2", "--eval-episodes", "1", "--n-startup-trials", "1", "--study-name", "s",
+        "--storage", str(tmp_path / "s.log"), "--out", str(tmp_path),
+    ]  # fmt: skip
+
+
+def load(tmp_path: Path) -> optuna.Study:
+    return optuna.load_study(study_name="s", storage=runner.make_storage(str(tmp_path / "s.log"), "s"))
+
+
+def test_study_with_pruner_completes_and_summarizes(tmp_path):
+    runner.main(worker_args(tmp_path, 2))
+    study = load(tmp_path)
+    assert runner.count(study, runner.FINISHED) == 2 and len(study.trials) == 2
+    opened = runner.open_study(runner.parse_args(worker_args(tmp_path, 2)))
+    assert isinstance(opened.pruner, optuna.pruners.MedianPruner) and isinstance(opened.sampler, optuna.samplers.TPESampler)
+    assert len(opened.trials) == 2  # opened by name: the same study
+    best = yaml.safe_load((tmp_path / "s/best.yml").read_text())
+    assert best["TaskAlloc/Almighty-v0"]["policy"] == "TAMPolicy"
+    rows = (tmp_path / "s/trials.csv").read_text().strip().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("number,state,value")
+    # Resume by study name: a second run with a larger total adds only the missing trials.
+    runner.main(worker_args(tmp_path, 3))
+    assert runner.count(load(tmp_path), runner.FINISHED) == 3 and len(load(tmp_path).trials) == 3
+
+
+def spawn(tmp_path: Path, n_trials: int, n_timesteps: int = 40) -> subprocess.Popen:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen(
+        [sys.executable, "-m", "tuning.study", *worker_args(tmp_path, n_trials, n_timesteps)],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+
+def test_two_workers_share_one_journal(tmp_path):
+    workers = [spawn(tmp_path, 6), spawn(tmp_path, 6)]
+    for w in workers:
+        out, _ = w.communicate(timeout=600)
+        assert w.returncode == 0, out[-3000:]
+    study = load(tmp_path)
+    finished = study.get_trials(states=runner.FINISHED)
+    assert len(finished) == 6
+    assert len({t.number for t in finished}) == 6
+    assert len({tuple(sorted(t.params.items())) for t in finished}) == 6  # no parameter set run twice
+    assert all(t.state in (*runner.FINISHED, TrialState.FAIL) for t in study.trials)
+    assert all(t.user_attrs.get("surplus") for t in study.trials if t.state == TrialState.FAIL)
+
+
+def test_killed_worker_loses_no_completed_trial(tmp_path):
+    worker = spawn(tmp_path, 4, n_timesteps=150)
+    deadline = time.time() + 300
+    while time.time() < deadline:  # kill it mid-trial, once at least one trial has completed
+        time.sleep(0.2)
+        if not (tmp_path / "s.log").exists():
+            continue
+        study = load(tmp_path)
+        if runner.count(study, runner.FINISHED) >= 1 and runner.count(study, (TrialState.RUNNING,)) == 1:
+            worker.send_signal(signal.SIGKILL)
+            break
+    worker.wait(timeout=60)
+    assert worker.returncode == -signal.SIGKILL, "the worker finished before it could be killed mid-trial"
+    before = {t.number: t.value for t in load(tmp_path).get_trials(states=runner.FINISHED)}
+    killed = [t for t in load(tmp_path).trials if t.state == TrialState.RUNNING]
+    assert len(killed) == 1
+    out, _ = spawn(tmp_path, 4, n_timesteps=150).communicate(timeout=600)
+    study = load(tmp_path)
+    after = {t.number: t.value for t in study.get_trials(states=runner.FINISHED)}
+    assert {n: after[n] for n in before} == before  # every completed trial kept, with its value
+    assert len(after) == 4
+    assert study.trials[killed[0].number].state == TrialState.FAIL
+    retried = [t for t in study.trials if t.user_attrs.get("retry_of") == killed[0].number]
+    assert len(retried) == 1 and retried[0].params == killed[0].params and "re-queued" in out

@@ -1,0 +1,85 @@
+"""rl-zoo3 launcher and configs (DESIGN §9): train, enjoy and -optimize through rl-zoo3's own entry points."""
+
+from __future__ import annotations
+
+import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+import envs
+from sb3_taskalloc import TAMPolicy, TwoStageSAC
+
+pytest.importorskip("rl_zoo3", reason='rl-zoo3 is the optional "zoo" extra')
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "zoo_configs"
+
+
+def zoo(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "sb3_taskalloc.zoo", *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+def test_importing_the_package_does_not_import_rl_zoo3():
+    code = "import sys, sb3_taskalloc, sb3_taskalloc.zoo; assert 'rl_zoo3' not in sys.modules, 'rl_zoo3 imported'"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+@pytest.mark.parametrize("name", ["two_stage_sac.yml", "maskable_ppo.yml"])
+def test_configs_have_a_valid_block_per_env(name):
+    config = yaml.safe_load((CONFIGS / name).read_text())
+    assert set(envs.ENV_SPECS) <= set(config), set(envs.ENV_SPECS) - set(config)
+    if name != "two_stage_sac.yml":
+        return
+    algo_args = set(inspect.signature(TwoStageSAC.__init__).parameters)
+    policy_args = set(inspect.signature(TAMPolicy.__init__).parameters)
+    for env_id in envs.ENV_SPECS:
+        block = dict(config[env_id])
+        assert block.pop("policy") == "TAMPolicy" and block.pop("n_timesteps") > 0
+        assert set(block) <= algo_args, set(block) - algo_args
+        assert set(block["policy_kwargs"]) <= policy_args
+    block = {k: v for k, v in config["TaskAlloc/Almighty-v0"].items() if k not in ("policy", "n_timesteps")}
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **block)
+    assert model.learning_rate == pytest.approx(1e-3) and model.policy.hidden_dim == 64
+
+
+def test_zoo_train_then_enjoy(tmp_path):
+    zoo(
+        tmp_path, "train", "--algo", "two_stage_sac", "--env", "TaskAlloc/Almighty-v0",
+        "--conf-file", str(CONFIGS / "two_stage_sac.yml"), "-n", "100", "--eval-freq", "-1", "--seed", "0", "-f", "logs",
+        "-params", "learning_starts:40", "batch_size:16",
+    )  # fmt: skip
+    path = tmp_path / "logs/two_stage_sac/TaskAlloc-Almighty-v0_1/TaskAlloc-Almighty-v0.zip"
+    assert path.exists()
+    model = TwoStageSAC.load(path, buffer_size=1)
+    assert model.num_timesteps == 100 and model._n_updates == 60 and model.batch_size == 16
+    out = zoo(
+        tmp_path, "enjoy", "--algo", "two_stage_sac", "--env", "TaskAlloc/Almighty-v0", "-f", "logs", "--exp-id", "1",
+        "-n", "3", "--no-render", "--deterministic",
+    ).stdout  # fmt: skip
+    assert "Mean reward" in out and "Episode Reward" in out
+
+
+def test_zoo_optimize_two_trials(tmp_path):
+    out = zoo(
+        tmp_path, "train", "--algo", "two_stage_sac", "--env", "TaskAlloc/Almighty-v0",
+        "--conf-file", str(CONFIGS / "two_stage_sac.yml"), "-n", "60", "-optimize", "--n-trials", "2",
+        "--n-evaluations", "2", "--eval-episodes", "1", "--n-startup-trials", "1", "--seed", "0", "-f", "logs",
+    ).stdout  # fmt: skip
+    assert "Number of finished trials:  2" in out
+    reports = list((tmp_path / "logs/two_stage_sac").glob("report_*.csv"))
+    assert len(reports) == 1 and len(reports[0].read_text().strip().splitlines()) == 3  # header + 2 trials
+
+
+def test_zoo_usage_error():
+    proc = subprocess.run([sys.executable, "-m", "sb3_taskalloc.zoo", "fly"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode != 0 and "usage" in proc.stderr

@@ -1,0 +1,75 @@
+"""Optuna samplers of TwoStageSAC hyperparameters, in rl-zoo3's signature (DESIGN §9).
+
+``sample_two_stage_sac_params(trial, n_actions, n_envs, additional_args)`` draws the raw parameters in
+well-conditioned spaces (log scales for rates and 1 − γ, powers of two for batch sizes, categorical widths) and
+returns them converted into TwoStageSAC keyword arguments, exactly as rl-zoo3's own samplers do;
+``convert_two_stage_sac_params`` is the converter rl-zoo3 applies to a stored trial's parameters (``--trial-id``).
+Every returned value is a primitive (numbers, strings, booleans, dicts of them), so it pastes into a zoo YAML file.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import optuna
+
+#: Raw search space (names are the trial's parameter names), shared by the sampler and the docs.
+SEARCH_SPACE = {
+    "learning_rate": "log-uniform [3e-5, 3e-3]",
+    "one_minus_gamma": "log-uniform [1e-3, 0.1] (γ = 1 − value)",
+    "tau": "log-uniform [1e-3, 0.05]",
+    "batch_size_pow": "int [4, 7] (batch 16 … 128)",
+    "select_batch_size_pow": "int [2, 5] (select rows 4 … 32)",
+    "learning_starts": "{0, 100, 500, 1000}",
+    "target_entropy_ratio": "uniform [0.05, 0.6]",
+    "hidden_dim": "{32, 64, 128}",
+    "n_attention_layers": "{0, 1}",
+}
+
+
+def convert_two_stage_sac_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """Turn raw trial parameters (see :data:`SEARCH_SPACE`) into TwoStageSAC keyword arguments.
+
+    :param sampled_params: ``trial.params`` of a TwoStageSAC trial
+    :return: keyword arguments (``policy_kwargs`` included) with primitive values
+    """
+    params = dict(sampled_params)
+    hyperparams: dict[str, Any] = {}
+    if "one_minus_gamma" in params:
+        hyperparams["gamma"] = 1.0 - params.pop("one_minus_gamma")
+    for name in ("batch_size", "select_batch_size"):
+        if f"{name}_pow" in params:
+            hyperparams[name] = 2 ** int(params.pop(f"{name}_pow"))
+    policy_kwargs = {key: params.pop(key) for key in ("hidden_dim", "n_attention_layers") if key in params}
+    if policy_kwargs:
+        hyperparams["policy_kwargs"] = policy_kwargs
+    hyperparams.update(params)
+    return hyperparams
+
+
+def sample_two_stage_sac_params(
+    trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict[str, Any]
+) -> dict[str, Any]:
+    """Sample TwoStageSAC hyperparameters (rl-zoo3 sampler signature).
+
+    :param trial: the Optuna trial
+    :param n_actions: size of the action vector (entities); unused, part of rl-zoo3's signature
+    :param n_envs: number of parallel envs; unused (one gradient step per env step is kept)
+    :param additional_args: rl-zoo3's extra arguments (HER settings); unused
+    :return: TwoStageSAC keyword arguments
+    """
+    sampled = {
+        "learning_rate": trial.suggest_float("learning_rate", 3e-5, 3e-3, log=True),
+        "one_minus_gamma": trial.suggest_float("one_minus_gamma", 1e-3, 0.1, log=True),
+        "tau": trial.suggest_float("tau", 1e-3, 0.05, log=True),
+        "batch_size_pow": trial.suggest_int("batch_size_pow", 4, 7),
+        "select_batch_size_pow": trial.suggest_int("select_batch_size_pow", 2, 5),
+        "learning_starts": trial.suggest_categorical("learning_starts", [0, 100, 500, 1000]),
+        "target_entropy_ratio": trial.suggest_float("target_entropy_ratio", 0.05, 0.6),
+        "hidden_dim": trial.suggest_categorical("hidden_dim", [32, 64, 128]),
+        "n_attention_layers": trial.suggest_categorical("n_attention_layers", [0, 1]),
+    }
+    hyperparams = convert_two_stage_sac_params(sampled)
+    trial.set_user_attr("gamma", hyperparams["gamma"])
+    trial.set_user_attr("batch_size", hyperparams["batch_size"])
+    return hyperparams

@@ -1,0 +1,315 @@
+"""Optuna studies of TwoStageSAC that scale from one process to many machines (DESIGN §9).
+
+``python -m tuning.study --env TaskAlloc/RBF-v0 --n-trials 50 --n-timesteps 20000 --study-name rbf``
+
+Every process started with the same ``--study-name`` and ``--storage`` is a worker of one study: TPE sampler, median
+pruner on the intermediate evaluations, until the study holds ``--n-trials`` finished (complete or pruned) trials.
+
+Storage:
+
+- default: an Optuna journal file ``studies/<study-name>.log`` (file-locked, append-only: a worker killed at any
+  moment loses no completed trial). Several workers on one machine, or on machines sharing the folder, run the same
+  study. A worker's running trial is tagged with its host and pid; a worker that starts later marks the trials of
+  dead local workers as failed and queues their parameters again.
+- ``postgresql://user:password@host/db`` (or any SQLAlchemy URL): Optuna's RDB storage with heartbeats. Workers on
+  many machines share the study; a trial whose worker stops sending heartbeats is failed after the grace period and
+  retried (``RetryFailedTrialCallback``).
+
+When a worker finishes it writes ``<out>/<study-name>/``: ``trials.csv`` (every trial), ``best.yml`` (the best
+parameters as a zoo YAML block keyed by the env id, ready to paste into ``zoo_configs/two_stage_sac.yml``) and
+``importance.png`` (parameter importances, PED-ANOVA).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import socket
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import optuna
+import yaml
+from optuna.storages.journal import JournalFileBackend
+from optuna.trial import TrialState
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import VecEnv
+
+import envs  # noqa: F401  (registers the TaskAlloc/* ids)
+from sb3_taskalloc import TwoStageSAC
+from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
+
+#: Trial states that count towards ``--n-trials``.
+FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
+
+
+class TrialEvalCallback(EvalCallback):
+    """:class:`EvalCallback` that reports each evaluation to an Optuna trial and stops training when the trial is
+    pruned (or when the evaluation is not a finite number).
+
+    :param eval_env: evaluation environment
+    :param trial: the trial to report to
+    :param n_eval_episodes: episodes per evaluation
+    :param eval_freq: evaluate every ``eval_freq`` calls (env steps with one env)
+    :param deterministic: deterministic evaluation
+    """
+
+    def __init__(
+        self,
+        eval_env: gym.Env | VecEnv,
+        trial: optuna.Trial,
+        n_eval_episodes: int = 5,
+        eval_freq: int = 10_000,
+        deterministic: bool = True,
+    ) -> None:
+        super().__init__(
+            eval_env, n_eval_episodes=n_eval_episodes, eval_freq=eval_freq, deterministic=deterministic, verbose=0
+        )
+        self.trial = trial
+        self.eval_idx = 0
+        self.is_pruned = False
+
+    def _on_step(self) -> bool:
+        if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
+            super()._on_step()
+            self.eval_idx += 1
+            if not math.isfinite(self.last_mean_reward):
+                self.is_pruned = True
+                return False
+            self.trial.report(self.last_mean_reward, self.eval_idx)
+            if self.trial.should_prune():
+                self.is_pruned = True
+                return False
+        return True
+
+
+def make_storage(url: str | None, study_name: str, folder: str = "studies") -> optuna.storages.BaseStorage:
+    """The study's storage: a journal file (default ``<folder>/<study_name>.log``, or a path ending in ``.log``) or an
+    RDB URL (``postgresql://…``, ``sqlite:///…``) with heartbeats and retries of failed trials.
+
+    :param url: ``None``, a journal file path, or an SQLAlchemy URL
+    :param study_name: study name (names the default journal file)
+    :param folder: folder of the default journal file
+    """
+    if url is None or "://" not in url:
+        path = Path(url) if url else Path(folder) / f"{study_name}.log"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
+    return optuna.storages.RDBStorage(
+        url,
+        heartbeat_interval=30,
+        grace_period=120,
+        failed_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=2),
+    )
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def recover_dead_workers(study: optuna.Study) -> list[int]:
+    """Fail the running trials of dead workers of this host and queue their parameters again (journal storage has
+    no heartbeat). :return: the numbers of the trials failed."""
+    host = socket.gethostname()
+    failed = []
+    for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+        if trial.user_attrs.get("host") != host or _pid_alive(int(trial.user_attrs.get("pid", -1))):
+            continue
+        study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)  # no public API fails another's trial
+        study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
+        failed.append(trial.number)
+    return failed
+
+
+def objective(trial: optuna.Trial, args: argparse.Namespace) -> float:
+    """Train TwoStageSAC with sampled hyperparameters and return its last evaluation (mean episode return).
+
+    Pruned by the median pruner on intermediate evaluations, and when training diverges (NaN)."""
+    trial.set_user_attr("host", socket.gethostname())
+    trial.set_user_attr("pid", os.getpid())
+    env_kwargs = args.env_kwargs or {}
+    kwargs = sample_two_stage_sac_params(trial, 0, 1, {})
+    eval_env = Monitor(gym.make(args.env, **env_kwargs))
+    callback = TrialEvalCallback(
+        eval_env, trial, n_eval_episodes=args.eval_episodes, eval_freq=max(args.n_timesteps // args.n_evaluations, 1)
+    )
+    model = TwoStageSAC(
+        "TAMPolicy", gym.make(args.env, **env_kwargs), seed=args.seed + trial.number, device=args.device, **kwargs
+    )
+    try:
+        model.learn(args.n_timesteps, callback=callback)
+    except (AssertionError, ValueError, RuntimeError) as error:  # NaN in a loss or a distribution
+        raise optuna.TrialPruned(f"training failed: {error}") from error
+    finally:
+        eval_env.close()
+        model.env.close()  # type: ignore[union-attr]
+    if callback.is_pruned:
+        raise optuna.TrialPruned()
+    if not math.isfinite(callback.last_mean_reward):
+        raise optuna.TrialPruned("evaluation returned a non-finite value")
+    return float(callback.last_mean_reward)
+
+
+def count(study: optuna.Study, states: tuple[TrialState, ...], below: int | None = None) -> int:
+    """Trials in ``states`` (with a number below ``below`` when given)."""
+    return sum(below is None or t.number < below for t in study.get_trials(deepcopy=False, states=states))
+
+
+def open_study(args: argparse.Namespace) -> optuna.Study:
+    """Create the study, or load it by name (resume): TPE sampler, median pruner on the intermediate evaluations."""
+    return optuna.create_study(
+        study_name=args.study_name,
+        storage=make_storage(args.storage, args.study_name, args.out),
+        direction="maximize",
+        load_if_exists=True,
+        # Each worker's sampler gets its own seed: workers seeded alike would propose the same parameters.
+        sampler=optuna.samplers.TPESampler(
+            n_startup_trials=args.n_startup_trials, seed=args.seed * 1_000_003 + os.getpid(), multivariate=True
+        ),
+        pruner=optuna.pruners.MedianPruner(n_startup_trials=args.n_startup_trials, n_warmup_steps=args.n_evaluations // 3),
+    )
+
+
+def run_worker(args: argparse.Namespace) -> optuna.Study:
+    """Run trials until the study holds ``args.n_trials`` finished trials; :return: the study."""
+    study = open_study(args)
+    if isinstance(study._storage, optuna.storages.JournalStorage):
+        recovered = recover_dead_workers(study)
+        if recovered:
+            print(f"re-queued the trials of dead workers: {recovered}")
+    while count(study, (*FINISHED, TrialState.RUNNING)) < args.n_trials:
+        trial = study.ask()
+        # Another worker may have started the last trial between the check and ask(): this one would be surplus.
+        if count(study, (*FINISHED, TrialState.RUNNING), below=trial.number) >= args.n_trials:
+            trial.set_user_attr("surplus", True)
+            study.tell(trial, state=TrialState.FAIL)
+            break
+        try:
+            value = objective(trial, args)
+        except optuna.TrialPruned as pruned:
+            study.tell(trial, state=TrialState.PRUNED)
+            print(f"trial {trial.number} pruned {pruned}".rstrip())
+            continue
+        except BaseException:  # a crash or Ctrl-C: the trial is failed and its parameters queued for a retry
+            study.tell(trial, state=TrialState.FAIL)
+            study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
+            raise
+        study.tell(trial, value)
+        print(f"trial {trial.number}: {value:.4g} (best {study.best_value:.4g}, {count(study, FINISHED)}/{args.n_trials})")
+    return study
+
+
+def write_trials_csv(study: optuna.Study, path: Path) -> None:
+    """One row per trial: number, state, value, start, duration (s), ``params_*`` and ``user_attrs_*`` columns."""
+    trials = study.get_trials(deepcopy=False)
+    params = sorted({k for t in trials for k in t.params})
+    attrs = sorted({k for t in trials for k in t.user_attrs})
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            ["number", "state", "value", "datetime_start", "duration_s"]
+            + [f"params_{k}" for k in params]
+            + [f"user_attrs_{k}" for k in attrs]
+        )
+        for t in trials:
+            duration = t.duration.total_seconds() if t.duration is not None else ""
+            writer.writerow(
+                [t.number, t.state.name, "" if t.value is None else t.value, t.datetime_start or "", duration]
+                + [t.params.get(k, "") for k in params]
+                + [t.user_attrs.get(k, "") for k in attrs]
+            )
+
+
+def summarize(study: optuna.Study, env_id: str, folder: Path) -> dict[str, Any]:
+    """Write ``trials.csv``, ``best.yml`` (zoo YAML block) and ``importance.png``; :return: the best hyperparameters."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_trials_csv(study, folder / "trials.csv")
+    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    if not complete:
+        print("no completed trial yet")
+        return {}
+    best = convert_two_stage_sac_params(study.best_trial.params)
+    block = {env_id: {"policy": "TAMPolicy", **best}}
+    header = f"# Best of study {study.study_name!r}: trial {study.best_trial.number}, mean return {study.best_value:.4g}\n"
+    (folder / "best.yml").write_text(header + yaml.safe_dump(block, sort_keys=False))
+    if len(complete) >= 2:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from optuna.importance import PedAnovaImportanceEvaluator
+        from optuna.visualization.matplotlib import plot_param_importances
+
+        try:
+            with warnings.catch_warnings():  # experimental-API notice; "equal importances" with very few trials
+                warnings.simplefilter("ignore")
+                ax = plot_param_importances(study, evaluator=PedAnovaImportanceEvaluator())
+            figure = ax.get_figure(root=True)
+            assert figure is not None
+            figure.tight_layout()
+            figure.savefig(folder / "importance.png", dpi=120)
+        except (ValueError, RuntimeError) as error:  # too few distinct trials for an importance estimate
+            print(f"no importance plot: {error}")
+    print(f"best trial {study.best_trial.number}: {study.best_value:.4g}\n{header}{yaml.safe_dump(block, sort_keys=False)}")
+    print(f"wrote {folder}/trials.csv, best.yml" + (", importance.png" if (folder / "importance.png").exists() else ""))
+    return best
+
+
+def _env_kwargs(text: str) -> dict[str, Any]:
+    value = yaml.safe_load(text)
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"--env-kwargs must be a YAML/JSON mapping, got {text!r}")
+    return value
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m tuning.study", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="env id")
+    parser.add_argument("--env-kwargs", type=_env_kwargs, default=None, help='env keywords as YAML, e.g. "{max_tasks: 5}"')
+    parser.add_argument("--n-trials", type=int, default=50, help="finished trials of the whole study (all workers)")
+    parser.add_argument("--n-timesteps", type=int, default=20_000, help="env steps per trial")
+    parser.add_argument("--n-evaluations", type=int, default=4, help="intermediate evaluations per trial (pruning points)")
+    parser.add_argument("--eval-episodes", type=int, default=3, help="episodes per evaluation")
+    parser.add_argument("--n-startup-trials", type=int, default=5, help="random trials before TPE; trials before pruning")
+    parser.add_argument("--study-name", default=None, help="study name (default: tune-<env name>)")
+    parser.add_argument("--storage", default=None, help="journal file path or RDB URL (default: studies/<study-name>.log)")
+    parser.add_argument("--out", default="studies", help="folder of the default journal file and of the summaries")
+    parser.add_argument("--seed", type=int, default=0, help="trial k trains with seed + k; samplers use it with the pid")
+    parser.add_argument("--device", default="auto", help="torch device")
+    args = parser.parse_args(argv)
+    for name in ("n_trials", "n_timesteps", "n_evaluations", "eval_episodes"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.env not in gym.registry:
+        parser.error(
+            f"unknown env id {args.env!r}; TaskAlloc ids: {sorted(k for k in gym.registry if k.startswith('TaskAlloc/'))}"
+        )
+    args.study_name = args.study_name or "tune-" + args.env.split("/")[-1]
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    import torch as th
+
+    th.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = run_worker(args)
+    summarize(study, args.env, Path(args.out) / args.study_name)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
