@@ -319,6 +319,12 @@ class TaskAllocEnv(gym.Env):
         self._bid[: b.shape[0]] = b
         self._geom_dirty = True
 
+    def observe(self) -> dict[str, np.ndarray]:
+        """The current observation, e.g. after :meth:`set_bids` changed the pair costs between two steps."""
+        if not self._state_ready:
+            raise RuntimeError("call reset() before observe()")
+        return self._obs()
+
     # ------------------------------------------------------------ arrivals
 
     def _free_slots(self) -> np.ndarray:

@@ -1,0 +1,166 @@
+"""Bidding workers (DESIGN §8): bids in range, wages paid as charged, determinism, co-training, the market check."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+
+from envs.rendering import random_valid_action
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.baselines import GreedyAllocator
+from sb3_taskalloc.workers import BiddingWorkers, WorkerMarket, co_train, make_market, run_manager, worker_observations
+
+
+class RandomManager:
+    """Random valid allocations that never pick the second half of the entities."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True):
+        action = random_valid_action(obs, self.rng)
+        n = len(action)
+        action[n // 2 :] = obs["task_mask"].shape[0]
+        return action, None
+
+
+def test_market_needs_a_bidding_env():
+    env = gym.make("TaskAlloc/RBF-v0")
+    with pytest.raises(ValueError, match="bidding=True"):
+        WorkerMarket(env, BiddingWorkers(3, 3.0))
+    with pytest.raises(ValueError, match="bid_max"):
+        WorkerMarket(gym.make("TaskAlloc/RBF-v0", bidding=True), BiddingWorkers(3, 5.0))
+    with pytest.raises(ValueError, match="init_bid"):
+        BiddingWorkers(3, 3.0, init_bid=4.0)
+
+
+@pytest.mark.parametrize("env_id", ["TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"])
+def test_bids_in_range_and_wages_are_the_charged_costs(env_id):
+    env = gym.make(env_id, bidding=True, travel_cost=0.0)  # no travel: the env charges exactly the accepted bids
+    workers = BiddingWorkers(env.unwrapped.K, env.unwrapped.bid_max, seed=0, learning_starts=10**9)
+    workers.sigma = env.unwrapped.bid_max  # wide noise: bids hit both bounds
+    market = WorkerMarket(env, workers)
+    manager = RandomManager(0)
+    obs, _ = market.reset(seed=0)
+    earned = np.zeros(env.unwrapped.max_entities)
+    wage_at_commit: dict[int, float] = {}
+    seen_zero = seen_max = False
+    for _ in range(150):
+        bids = market.last_bids
+        assert np.all(bids >= 0) and np.all(bids <= env.unwrapped.bid_max)
+        seen_zero |= float(bids.min()) == 0.0
+        seen_max |= float(bids.max()) == env.unwrapped.bid_max
+        np.testing.assert_allclose(obs["entity_features"][:, -1], bids, rtol=1e-6)  # the manager sees the bids
+        action, _ = manager.predict(obs)
+        obs, _, term, trunc, info = market.step(action)
+        applied = env.unwrapped.applied_action()
+        for i in np.flatnonzero(applied < env.unwrapped.max_tasks):
+            wage_at_commit[int(i)] = float(bids[i])
+        # Independent sum: the wages paid this step equal the costs the env charged, entity by entity.
+        np.testing.assert_allclose(info["worker_wages"], info["entity_income"], rtol=1e-9, atol=1e-12)
+        assert info["worker_wages"].sum() == pytest.approx(info["cost_total"])
+        for i in np.flatnonzero(info["worker_wages"]):
+            assert info["worker_wages"][i] == pytest.approx(wage_at_commit[int(i)])
+        earned += info["worker_wages"]
+        if term or trunc:
+            break
+    assert seen_zero and seen_max
+    never_picked = np.setdiff1d(np.arange(env.unwrapped.n_entities), list(wage_at_commit))
+    assert never_picked.size >= env.unwrapped.n_entities // 2 and np.all(
+        earned[never_picked] == 0
+    )  # a worker never selected earns 0
+    assert earned.sum() > 0
+
+
+def test_worker_observations_offer_the_nearest_open_task():
+    env = gym.make("TaskAlloc/RBF-v0", bidding=True)
+    obs, _ = env.reset(seed=3)
+    idx, task, x = worker_observations(obs, env.unwrapped._cost0)
+    K = 3
+    assert np.array_equal(idx, np.flatnonzero(obs["entity_mask"])) and x.shape == (len(idx), 2 * K + 8)
+    pe = obs["entity_features"][idx, 1 + K : 3 + K]
+    pt = obs["task_features"][:, 1 + K : 3 + K]
+    d = np.abs(pe[:, None] - pt[None]).sum(-1) + np.where(obs["task_mask"], 0, np.inf)
+    np.testing.assert_array_equal(d[np.arange(len(idx)), task], d.min(1))
+
+
+def run_co_training(seed: int) -> tuple[TwoStageSAC, WorkerMarket]:
+    workers = BiddingWorkers(
+        3, gym.make("TaskAlloc/RBF-v0", bidding=True).unwrapped.bid_max, seed=seed, learning_starts=200, batch_size=32
+    )
+    kwargs = {"learning_starts": 30, "batch_size": 16, "select_batch_size": 4, "policy_kwargs": {"hidden_dim": 16}}
+    return co_train("TaskAlloc/RBF-v0", 60, workers=workers, seed=seed, manager_kwargs=kwargs)
+
+
+def params(module: th.nn.Module) -> th.Tensor:
+    return th.cat([p.detach().flatten().clone() for p in module.parameters()])
+
+
+def test_co_training_is_deterministic_and_trains_both():
+    th.manual_seed(123)
+    workers_before = BiddingWorkers(3, 3.0, seed=0, learning_starts=200, batch_size=32)
+    manager, market = run_co_training(0)
+    manager2, market2 = run_co_training(0)
+    assert th.equal(params(manager.policy), params(manager2.policy))
+    assert th.equal(params(market.workers.ddpg.actor), params(market2.workers.ddpg.actor))
+    assert market.workers.ddpg._n_updates > 0 and manager._n_updates > 0
+    assert not th.equal(params(market.workers.ddpg.actor), params(workers_before.ddpg.actor))
+    fresh = TwoStageSAC("TAMPolicy", make_market("TaskAlloc/RBF-v0", seed=0), seed=0, policy_kwargs={"hidden_dim": 16})
+    assert not th.equal(params(manager.policy), params(fresh.policy))
+
+
+def test_save_and_load_workers(tmp_path):
+    workers = BiddingWorkers(3, 3.0, seed=0)
+    workers.sigma = 0.2
+    workers.save(tmp_path / "workers")
+    loaded = BiddingWorkers.load(tmp_path / "workers")
+    x = np.random.default_rng(0).standard_normal((7, 14)).astype(np.float32)
+    np.testing.assert_allclose(loaded.bid(x, explore=False), workers.bid(x, explore=False))
+    assert loaded.sigma == pytest.approx(0.2)
+
+
+def frozen_market_stats(workers: BiddingWorkers, seed: int) -> tuple[float, float]:
+    """Mean deterministic bid and number of picked bids over one episode with a frozen greedy manager."""
+    market = make_market("TaskAlloc/RBF-v0", workers, train=False, explore=False)
+    run_manager(market, GreedyAllocator(), 100, seed=seed)
+    return market.history[0]["mean_bid"], market.history[0]["picked"]
+
+
+@pytest.mark.slow
+def test_workers_raise_bids_but_stay_picked():
+    """Market equilibrium with a frozen greedy manager that prefers cheaper entities: the workers' bids rise from
+    their start, but stay low enough that they keep being picked (figures in the README)."""
+    workers = BiddingWorkers(3, 3.0, seed=0)
+    bid0, picked0 = frozen_market_stats(workers, seed=100)
+    co_train("TaskAlloc/RBF-v0", 3000, GreedyAllocator(), workers, seed=0)
+    bid1, picked1 = frozen_market_stats(workers, seed=100)
+    print(f"\nmean bid {bid0:.3f} -> {bid1:.3f}; picked bids per episode {picked0:.0f} -> {picked1:.0f}")
+    assert bid1 > 1.5 * bid0
+    assert picked1 > 0.7 * picked0
+
+
+def test_ddpg_config_blocks_build_workers(tmp_path):
+    from pathlib import Path
+
+    from sb3_taskalloc.workers import load_worker_config
+
+    path = Path(__file__).resolve().parents[1] / "zoo_configs/ddpg.yml"
+    for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"):
+        base = gym.make(env_id, bidding=True).unwrapped
+        workers = BiddingWorkers(base.K, base.bid_max, **load_worker_config(path, env_id))
+        assert 0 < workers.init_bid < workers.bid_max and workers.sigma >= workers.sigma_min
+    bad = tmp_path / "bad.yml"
+    bad.write_text("TaskAlloc/RBF-v0:\n  learning_rat: 0.1\n")
+    with pytest.raises(ValueError, match="learning_rat"):
+        load_worker_config(bad, "TaskAlloc/RBF-v0")
+
+
+def test_cli_with_a_frozen_greedy_manager(tmp_path):
+    from sb3_taskalloc.workers import main
+
+    main(["--manager", "greedy", "--timesteps", "120", "--out", str(tmp_path), "--seed", "1"])
+    rows = (tmp_path / "incomes.csv").read_text().strip().splitlines()
+    assert len(rows) == 2 and rows[0].startswith("episode,manager_income,worker_income,total_income")
+    assert (tmp_path / "incomes.png").stat().st_size > 0 and (tmp_path / "workers.zip").exists()
