@@ -73,7 +73,7 @@ class RecedingHorizonPlanner(Allocator):
                              f"{iterations}, {horizon}, {replan_every}")  # fmt: skip
         if budget is not None and budget < population:
             raise ValueError(f"budget ({budget} rollouts) must be at least the population ({population})")
-        self.env = base
+        self.env: Any = base
         self.population = population
         self.iterations = iterations if budget is None else max(1, (budget - population) // population)
         self.budget = budget
@@ -158,9 +158,9 @@ class RecedingHorizonPlanner(Allocator):
         steps of greedy continuation."""
         clone = self._clone(future)
         total = 0.0
+        obs: dict[str, np.ndarray] = {}
         for t in range(self.horizon + self.tail):
-            action = genome[t] if t < self.horizon else self.greedy.allocate(obs)
-            obs, reward, terminated, _, _ = clone.step(action)
+            obs, reward, terminated, _, _ = clone.step(genome[t] if t < self.horizon else self.greedy.allocate(obs))
             total += float(reward)
             if terminated:
                 break
