@@ -102,11 +102,8 @@ class RecedingHorizonPlanner(Allocator):
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         if episode_start is not None and np.any(episode_start):
             self._plan = None
-        if (
-            isinstance(observation, dict)
-            and np.ndim(observation.get("entity_mask")) == 2
-            and len(observation["entity_mask"]) > 1
-        ):
+        masks = observation.get("entity_mask") if isinstance(observation, dict) else None
+        if masks is not None and np.ndim(masks) == 2 and len(masks) > 1:
             raise ValueError("planners act in one env (they clone it): use a single env, not a VecEnv with several")
         return super().predict(observation, state, episode_start, deterministic)
 
