@@ -164,7 +164,81 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
-BENCHES: dict[str, BenchFn] = {"envs": bench_envs, "policy": bench_policy, "train": bench_train}
+def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Seconds per decision of every baseline and of TwoStageSAC on RBF (planners at the budget the experiments use
+    and at the paper's settings), and MILP solve time against the instance size."""
+    import gymnasium as gym
+    import torch as th
+
+    import envs  # noqa: F401
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.baselines import (
+        GeneticAlgorithm,
+        GreedyAllocator,
+        MILPAllocator,
+        ParticleSwarm,
+        RecedingHorizonPlanner,
+        SymbioticOrganismsSearch,
+    )
+    from sb3_taskalloc.experiments.table import PLANNER_BUDGET
+
+    rows: list[dict[str, Any]] = []
+    steps = 10 if args.quick else 30
+
+    def per_decision(make: Callable[[Any], Any], n: int = steps) -> float:
+        env = gym.make("TaskAlloc/RBF-v0")
+        agent = make(env)
+        obs, _ = env.reset(seed=0)
+        t0 = time.perf_counter()
+        for _ in range(n):
+            obs, *_ = env.step(agent.predict(obs, deterministic=True)[0])
+        return (time.perf_counter() - t0) / n
+
+    th.manual_seed(0)
+    sac = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0)
+    rows.append({"method": "TwoStageSAC (untrained)", "setting": "defaults", "s_per_decision": per_decision(lambda _: sac)})
+    rows.append({"method": "Greedy", "setting": "", "s_per_decision": per_decision(lambda env: GreedyAllocator())})
+    rows.append({"method": "MILP", "setting": "time_limit 10 s", "s_per_decision": per_decision(lambda env: MILPAllocator())})
+    planners: list[type[RecedingHorizonPlanner]] = [GeneticAlgorithm, ParticleSwarm, SymbioticOrganismsSearch]
+    for cls in planners:
+
+        def make_planner(env: Any, cls: type[RecedingHorizonPlanner] = cls) -> RecedingHorizonPlanner:
+            return cls(env, seed=0, **PLANNER_BUDGET)
+
+        used = per_decision(make_planner, n=20)  # two re-plans
+        rows.append({"method": cls.__name__, "setting": f"experiments: {PLANNER_BUDGET}", "s_per_decision": used})
+        # Paper settings (population 100, 1000 iterations): one iteration measured, then scaled; re-plan every 10 steps.
+        env = gym.make("TaskAlloc/RBF-v0")
+        env.reset(seed=0)
+        planner = cls(env, seed=0, budget=200 if cls is not SymbioticOrganismsSearch else 500)
+        t0 = time.perf_counter()
+        planner.plan()
+        per_rollout = (time.perf_counter() - t0) / max(planner.last["rollouts"], 1)
+        rollouts = 100 * (1 + 1000 * (4 if cls is SymbioticOrganismsSearch else 1))
+        rows.append(
+            {
+                "method": cls.__name__,
+                "setting": "paper (estimated: measured s/rollout × rollouts / 10 steps)",
+                "s_per_decision": per_rollout * rollouts / 10,
+            }
+        )
+    milp = MILPAllocator(time_limit=60.0)
+    for n, m in [(20, 5), (50, 10), (100, 10)] if args.quick else [(20, 5), (50, 10), (100, 10), (200, 10), (500, 20)]:
+        env = _scaled_rbf(n, m)
+        obs, _ = env.reset(seed=0)
+        milp.allocate(obs)
+        assert milp.last is not None
+        rows.append(
+            {
+                "method": "MILP solve",
+                "setting": f"{n} entities x {m} tasks ({milp.last.message}, gap {milp.last.mip_gap})",
+                "s_per_decision": milp.last.seconds,
+            }
+        )
+    return rows
+
+
+BENCHES: dict[str, BenchFn] = {"envs": bench_envs, "policy": bench_policy, "train": bench_train, "baselines": bench_baselines}
 
 
 def _print_table(name: str, rows: list[dict[str, Any]]) -> None:

@@ -1,0 +1,87 @@
+"""The paper's first figure: return against training steps on "Retain the Almighty" for pre-assignment and for
+selection without it, in sequence and in random order (DESIGN §7, ``--almighty``)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+VARIANTS = {
+    "pre-assign (ours)": {},
+    "sequence": {"preassign": False, "task_order": "sequential"},
+    "random": {"preassign": False, "task_order": "random"},
+}
+
+
+class DeterministicReturn(BaseCallback):
+    """Every ``every`` steps, the deterministic return of the one-step Almighty episode."""
+
+    def __init__(self, every: int) -> None:
+        super().__init__()
+        self.every = every
+        self.env = gym.make("TaskAlloc/Almighty-v0")
+        self.points: list[tuple[int, float]] = []
+
+    def _evaluate(self) -> None:
+        obs, _ = self.env.reset(seed=0)
+        _, reward, *_ = self.env.step(self.model.predict(obs, deterministic=True)[0])
+        self.points.append((self.num_timesteps, float(reward)))
+
+    def _on_training_start(self) -> None:
+        self._evaluate()
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps % self.every == 0:
+            self._evaluate()
+        return True
+
+
+def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str | Path = "results/almighty") -> Path:
+    """Train the three variants (``learning_rate=1e-3``, ``learning_starts=200``, as the learning check) and write
+    ``almighty.csv`` (variant, seed, step, return) and ``almighty.png`` (mean and range over seeds, optimum 35)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from tqdm.auto import tqdm
+
+    from sb3_taskalloc import TwoStageSAC
+
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    curves: dict[str, list[list[tuple[int, float]]]] = {name: [] for name in VARIANTS}
+    for name, kwargs in tqdm(list(VARIANTS.items()), desc="Almighty variants"):
+        for seed in range(seeds):
+            model = TwoStageSAC(
+                "TAMPolicy", "TaskAlloc/Almighty-v0", learning_rate=1e-3, learning_starts=200, seed=seed, policy_kwargs=kwargs
+            )
+            callback = DeterministicReturn(every)
+            model.learn(steps, callback=callback)
+            curves[name].append(callback.points)
+    with (folder / "almighty.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["variant", "seed", "step", "return"])
+        for name, runs in curves.items():
+            for seed, points in enumerate(runs):
+                writer.writerows([name, seed, step, value] for step, value in points)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, (name, runs) in enumerate(curves.items()):
+        n = min(len(r) for r in runs)
+        x = np.array([p[0] for p in runs[0][:n]])
+        y = np.array([[p[1] for p in r[:n]] for r in runs])
+        ax.plot(x, y.mean(0), color=f"C{i}", lw=2, label=name)
+        ax.fill_between(x, y.min(0), y.max(0), color=f"C{i}", alpha=0.15)
+    ax.axhline(35, color="k", ls="--", lw=1, label="optimum (35)")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("deterministic return")
+    ax.set_title(f"Retain the Almighty: mean and range over {seeds} seeds")
+    ax.legend(loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(folder / "almighty.png", dpi=110)
+    plt.close(fig)
+    return folder / "almighty.png"
