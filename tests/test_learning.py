@@ -1,13 +1,9 @@
 """Learning check (slow): the paper's first experiment on "Retain the Almighty".
 
-TwoStageSAC reaches the optimum 35 in deterministic evaluation in at least 4 of 5 seeds within the budget below
-(measured: 35, 35, 35, 35, 33 for seeds 0–4; at 800 steps: 33, 35, 35, 35, 25).
-
-The paper's contrast — sequential selection without pre-assignment getting stuck — did not reproduce with this
-project's select stage: ``preassign=False, task_order="sequential"`` reached 35 in all 5 seeds at 800 steps. Its
-pointer sees how much of each entity's supply a task would waste, and learns to spend specialists on single-skill
-tasks, so it keeps the almighty entity for the last task. That comparison is therefore reported in the README, not
-asserted here.
+Within the budget below, TwoStageSAC reaches the optimum 35 in deterministic evaluation in at least 4 of 5 seeds, while
+selection without pre-assignment in slot order (``preassign=False, task_order="sequential"``) does not in most seeds:
+its single-skill tasks, decoded first, spend the almighty entity, and the all-skill task is then covered by eight
+specialists (return 28). Measured at this budget: pre-assignment 35 in 5 of 5 seeds, sequence 28 in 5 of 5.
 """
 
 from __future__ import annotations
@@ -49,8 +45,13 @@ def train_and_evaluate(args: tuple[int, dict]) -> float:
 
 
 @pytest.mark.slow
-def test_almighty_reaches_optimum():
+def test_almighty_preassignment_reaches_optimum_and_sequence_gets_stuck():
+    variants = {"pre-assign": {}, "sequence": {"preassign": False, "task_order": "sequential"}}
+    jobs = [(seed, kwargs) for kwargs in variants.values() for seed in SEEDS]
     with mp.get_context("fork").Pool(2) as pool:
-        returns = pool.map(train_and_evaluate, [(seed, {}) for seed in SEEDS], chunksize=1)
+        flat = pool.map(train_and_evaluate, jobs, chunksize=1)
+    returns = {name: flat[i * len(SEEDS) : (i + 1) * len(SEEDS)] for i, name in enumerate(variants)}
     print(f"\nAlmighty after {BUDGET['total_timesteps']} steps: {returns}")
-    assert sum(r == pytest.approx(35.0) for r in returns) >= 4, returns
+    optimal = {name: sum(r == pytest.approx(35.0) for r in values) for name, values in returns.items()}
+    assert optimal["pre-assign"] >= 4, returns
+    assert optimal["sequence"] <= 2, returns  # does not reach the optimum in most seeds
