@@ -65,7 +65,7 @@ METHODS: dict[str, Method] = {
 class Budget:
     """Training and evaluation budget of a table run.
 
-    :param train_episodes: training episodes of the RL methods
+    :param train_episodes: training episodes of the RL methods (or per env name)
     :param few_shot_episodes: fine-tuning episodes of the few-shot rows (paper: 200)
     :param eval_episodes: evaluation episodes per seed
     :param planner: GA/PSO/SOS keywords (None: the paper's settings)
@@ -75,7 +75,7 @@ class Budget:
     :param max_episode_steps: shorter episodes than the envs' own (training and evaluation), for smoke runs
     """
 
-    train_episodes: int
+    train_episodes: int | dict[str, int]
     few_shot_episodes: int
     eval_episodes: int
     planner: dict[str, Any] | None
@@ -84,8 +84,9 @@ class Budget:
     milp: dict[str, Any] = field(default_factory=dict)
     max_episode_steps: int | None = None
 
-    def steps(self, env: str, episodes: int) -> int:
-        return episodes * min(self.max_episode_steps or EPISODE_STEPS[env], EPISODE_STEPS[env])
+    def steps(self, env: str, episodes: int | dict[str, int]) -> int:
+        n = episodes[env] if isinstance(episodes, dict) else episodes
+        return n * min(self.max_episode_steps or EPISODE_STEPS[env], EPISODE_STEPS[env])
 
     def make(self, env_id: str) -> gym.Env:
         """The env of a run (episodes cut at ``max_episode_steps`` when set)."""
@@ -96,7 +97,7 @@ BUDGETS: dict[str, Budget] = {
     # The paper: 1000 training episodes, 200 fine-tuning episodes, 10 evaluation episodes, planners at full settings.
     "paper": Budget(1000, 200, 10, None),
     # What fits this 2-core machine in an hour or so per env (TwoStageSAC trains at 6-25 env steps/s on one thread).
-    "local": Budget(20, 5, 5, PLANNER_BUDGET),
+    "local": Budget({"Almighty": 1200, "EPT": 20, "RBF": 20, "MT": 14}, 5, 3, PLANNER_BUDGET, milp={"time_limit": 2.0}),
     # CI: checks the pipeline end to end in seconds; the figures mean nothing.
     "smoke": Budget(
         2,
@@ -116,6 +117,20 @@ FOOTNOTES = {
     "static": "n/a (no learning): the baseline has nothing to fine-tune; its zero-shot row is its run on the preset.",
     "preset": "n/a (no preset): Almighty has no entity or task shift presets.",
 }
+
+
+def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
+    """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
+    ``policy`` and ``n_timesteps`` left out); ``{}`` when the file or the block is missing."""
+    import yaml
+
+    path = Path(path) if path else Path(__file__).resolve().parents[2] / "zoo_configs" / "two_stage_sac.yml"
+    if not path.exists():
+        return {}
+    block = dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
+    block.pop("policy", None)
+    block.pop("n_timesteps", None)
+    return block
 
 
 def row_env(env: str, row: str) -> str | None:
@@ -223,7 +238,7 @@ class TableRun:
             vec = DummyVecEnv([lambda: Monitor(self.budget.make(env_id), filename=str(log))])
             return MaskablePPO("MultiInputPolicy", vec, seed=seed, **self.budget.ppo)
         env = Monitor(self.budget.make(env_id), filename=str(log))
-        kwargs = dict(self.budget.sac)
+        kwargs = {**zoo_hyperparameters(env_id), **self.budget.sac}
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 
