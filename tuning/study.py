@@ -28,6 +28,7 @@ import math
 import os
 import socket
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Any
@@ -101,12 +102,21 @@ def make_storage(url: str | None, study_name: str, folder: str = "studies") -> o
         path = Path(url) if url else Path(folder) / f"{study_name}.log"
         path.parent.mkdir(parents=True, exist_ok=True)
         return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
-    return optuna.storages.RDBStorage(
-        url,
-        heartbeat_interval=30,
-        grace_period=120,
-        failed_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=2),
-    )
+    import sqlalchemy.exc
+
+    for attempt in range(5):
+        try:
+            with warnings.catch_warnings():  # heartbeats are an "experimental" argument of Optuna
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return optuna.storages.RDBStorage(
+                    url,
+                    heartbeat_interval=30,
+                    grace_period=120,
+                    heartbeat_stale_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=2),
+                )
+        except sqlalchemy.exc.IntegrityError:  # workers starting together race to create the schema: the loser retries
+            time.sleep(0.5 * (attempt + 1))
+    raise RuntimeError(f"could not open the study storage {url} (schema creation kept failing)")
 
 
 def _pid_alive(pid: int) -> bool:
