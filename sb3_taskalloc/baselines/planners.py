@@ -182,6 +182,12 @@ class RecedingHorizonPlanner(Allocator):
         tasks = self.rng.integers(0, M, size=shape)
         return np.where(self.rng.random(shape) < unassigned, M, tasks)
 
+    def initial_genomes(self, seed_genome: np.ndarray, rate: float) -> np.ndarray:
+        """(population, horizon, N): the seed (greedy rollout), mutations of it at ``rate``, and random genomes (half)."""
+        P = self.population
+        mutants = self.mutate(np.repeat(seed_genome[None], P // 2 - 1, 0), rate)
+        return np.concatenate([seed_genome[None], mutants, self.random_genomes(P - P // 2)])
+
     def mutate(self, genomes: np.ndarray, rate: float) -> np.ndarray:
         """Re-draw each gene with probability ``rate`` (uniform over the M task slots and "unassigned")."""
         M = self.env.max_tasks  # type: ignore[attr-defined]
@@ -228,8 +234,7 @@ class GeneticAlgorithm(RecedingHorizonPlanner):
 
     def search(self, evaluate: Evaluate, seed_genome: np.ndarray) -> tuple[np.ndarray, float]:
         P = self.population
-        pop = np.concatenate([seed_genome[None], self.mutate(np.repeat(seed_genome[None], P // 2 - 1, 0), self.mutation),
-                              self.random_genomes(P - P // 2)])  # fmt: skip
+        pop = self.initial_genomes(seed_genome, self.mutation)
         fit = evaluate(pop)
         for _ in range(self.iterations):
             a, b = self.rng.integers(0, P, size=(2, P))
@@ -262,8 +267,7 @@ class _ContinuousPlanner(RecedingHorizonPlanner):
 
     def initial(self, seed_genome: np.ndarray) -> np.ndarray:
         P = self.population
-        genomes = np.concatenate([seed_genome[None], self.mutate(np.repeat(seed_genome[None], P // 2 - 1, 0), 0.05),
-                                  self.random_genomes(P - P // 2)])  # fmt: skip
+        genomes = self.initial_genomes(seed_genome, 0.05)
         return self.encode(genomes) + self.rng.uniform(-0.4, 0.4, size=genomes.shape) * (np.arange(P) > 0)[:, None, None]
 
 
