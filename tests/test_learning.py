@@ -3,7 +3,8 @@
 Within the budget below, TwoStageSAC reaches the optimum 35 in deterministic evaluation in at least 4 of 5 seeds, while
 selection without pre-assignment in slot order (``preassign=False, task_order="sequential"``) does not in most seeds:
 its single-skill tasks, decoded first, spend the almighty entity, and the all-skill task is then covered by eight
-specialists (return 28). Measured at this budget: pre-assignment 35 in 5 of 5 seeds, sequence 28 in 5 of 5.
+specialists (return 28). Measured: pre-assignment 35 in 5 of 5 seeds at 1,200 steps; sequence 28 in 5 of 5 seeds at
+800 and at 1,200 steps.
 """
 
 from __future__ import annotations
@@ -16,10 +17,13 @@ import pytest
 #: Env steps per seed (one-step episodes), learning rate and warm-up of the check.
 BUDGET = {"total_timesteps": 1200, "learning_rate": 1e-3, "learning_starts": 200}
 SEEDS = range(5)
+#: The sequence variant decodes its tasks one after the other (about 2× slower per step): to fit CI it is checked on
+#: 3 seeds at 800 steps. It returned 28 in all of seeds 0–4 at both 800 and 1,200 steps.
+SEQUENCE_SEEDS, SEQUENCE_STEPS = range(3), 800
 
 
-def train_and_evaluate(args: tuple[int, dict]) -> float:
-    seed, policy_kwargs = args
+def train_and_evaluate(args: tuple[int, dict, int]) -> float:
+    seed, policy_kwargs, steps = args
     os.environ["OMP_NUM_THREADS"] = "1"
     import gymnasium as gym
     import torch as th
@@ -36,7 +40,7 @@ def train_and_evaluate(args: tuple[int, dict]) -> float:
         seed=seed,
         policy_kwargs=policy_kwargs,
     )
-    model.learn(BUDGET["total_timesteps"])
+    model.learn(steps)
     env = gym.make("TaskAlloc/Almighty-v0")
     obs, _ = env.reset(seed=seed)
     _, reward, terminated, _, _ = env.step(model.predict(obs, deterministic=True)[0])
@@ -46,12 +50,13 @@ def train_and_evaluate(args: tuple[int, dict]) -> float:
 
 @pytest.mark.slow
 def test_almighty_preassignment_reaches_optimum_and_sequence_gets_stuck():
-    variants = {"pre-assign": {}, "sequence": {"preassign": False, "task_order": "sequential"}}
-    jobs = [(seed, kwargs) for kwargs in variants.values() for seed in SEEDS]
+    sequence = {"preassign": False, "task_order": "sequential"}
+    jobs = [(seed, {}, BUDGET["total_timesteps"]) for seed in SEEDS]
+    jobs += [(seed, sequence, SEQUENCE_STEPS) for seed in SEQUENCE_SEEDS]
     with mp.get_context("fork").Pool(2) as pool:
         flat = pool.map(train_and_evaluate, jobs, chunksize=1)
-    returns = {name: flat[i * len(SEEDS) : (i + 1) * len(SEEDS)] for i, name in enumerate(variants)}
-    print(f"\nAlmighty after {BUDGET['total_timesteps']} steps: {returns}")
+    returns = {"pre-assign": flat[: len(SEEDS)], "sequence": flat[len(SEEDS) :]}
+    print(f"\nAlmighty: pre-assign after {BUDGET['total_timesteps']} steps, sequence after {SEQUENCE_STEPS}: {returns}")
     optimal = {name: sum(r == pytest.approx(35.0) for r in values) for name, values in returns.items()}
     assert optimal["pre-assign"] >= 4, returns
-    assert optimal["sequence"] <= 2, returns  # does not reach the optimum in most seeds
+    assert optimal["sequence"] <= len(SEQUENCE_SEEDS) // 2, returns  # does not reach the optimum in most seeds
