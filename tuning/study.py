@@ -13,7 +13,7 @@ Storage:
   dead local workers as failed and queues their parameters again.
 - ``postgresql://user:password@host/db`` (or any SQLAlchemy URL): Optuna's RDB storage with heartbeats. Workers on
   many machines share the study; a trial whose worker stops sending heartbeats is failed after the grace period and
-  retried (``RetryFailedTrialCallback``).
+  retried (``RetryHeartbeatStaleTrialCallback``).
 
 When a worker finishes it writes ``<out>/<study-name>/``: ``trials.csv`` (every trial), ``best.yml`` (the best
 parameters as a zoo YAML block keyed by the env id, ready to paste into ``zoo_configs/two_stage_sac.yml``) and
@@ -112,7 +112,7 @@ def make_storage(url: str | None, study_name: str, folder: str = "studies") -> o
                     url,
                     heartbeat_interval=30,
                     grace_period=120,
-                    heartbeat_stale_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=2),
+                    heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=2),
                 )
         except sqlalchemy.exc.IntegrityError:  # workers starting together race to create the schema: the loser retries
             time.sleep(0.5 * (attempt + 1))
