@@ -368,6 +368,7 @@ def co_train(
     manager: Any = None,
     workers: BiddingWorkers | None = None,
     train_workers: bool = True,
+    train_manager: bool = True,
     seed: int = 0,
     manager_kwargs: dict[str, Any] | None = None,
     worker_kwargs: dict[str, Any] | None = None,
@@ -381,6 +382,7 @@ def co_train(
         ``predict`` (frozen: a baseline allocator or a model run deterministically)
     :param workers: the workers (default: new ones)
     :param train_workers: whether the workers learn (False: frozen workers)
+    :param train_manager: whether a TwoStageSAC manager learns (False: it acts deterministically, frozen)
     :param seed: seed of everything
     :param manager_kwargs: TwoStageSAC keywords for a new manager
     :param worker_kwargs: :class:`BiddingWorkers` keywords for new workers
@@ -395,7 +397,7 @@ def co_train(
         manager = TwoStageSAC("TAMPolicy", market, seed=seed, **(manager_kwargs or {}))
     elif isinstance(manager, TwoStageSAC):
         manager.set_env(market)
-    if isinstance(manager, TwoStageSAC):
+    if isinstance(manager, TwoStageSAC) and train_manager:
         manager.learn(total_timesteps, progress_bar=progress_bar, reset_num_timesteps=False)
     else:
         run_manager(market, manager, total_timesteps, seed=seed)
@@ -469,6 +471,7 @@ def main(argv: list[str] | None = None) -> None:
         manager,
         workers,
         train_workers=not args.freeze_workers,
+        train_manager=args.manager == "learn",
         seed=args.seed,
         worker_kwargs=worker_kwargs,
         progress_bar=True,

@@ -164,3 +164,13 @@ def test_cli_with_a_frozen_greedy_manager(tmp_path):
     rows = (tmp_path / "incomes.csv").read_text().strip().splitlines()
     assert len(rows) == 2 and rows[0].startswith("episode,manager_income,worker_income,total_income")
     assert (tmp_path / "incomes.png").stat().st_size > 0 and (tmp_path / "workers.zip").exists()
+
+
+def test_frozen_manager_does_not_learn():
+    market = make_market("TaskAlloc/RBF-v0", seed=0)
+    manager = TwoStageSAC("TAMPolicy", market, seed=0, learning_starts=5, batch_size=8, policy_kwargs={"hidden_dim": 16})
+    before = params(manager.policy)
+    workers = BiddingWorkers(3, market.workers.bid_max, seed=0, learning_starts=50, batch_size=16)
+    _, market = co_train("TaskAlloc/RBF-v0", 30, manager, workers, train_manager=False, seed=0)
+    assert th.equal(params(manager.policy), before) and manager._n_updates == 0
+    assert workers.ddpg._n_updates > 0  # the workers learned against it
