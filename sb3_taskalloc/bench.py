@@ -210,11 +210,11 @@ def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:
         # Paper settings (population 100, 1000 iterations): one iteration measured, then scaled; re-plan every 10 steps.
         env = gym.make("TaskAlloc/RBF-v0")
         env.reset(seed=0)
-        planner = cls(env, seed=0, budget=200 if cls is not SymbioticOrganismsSearch else 500)
+        planner = cls(env, seed=0, budget=100 * (1 + cls.rollouts_per_iteration))  # one iteration at population 100
         t0 = time.perf_counter()
         planner.plan()
         per_rollout = (time.perf_counter() - t0) / max(planner.last["rollouts"], 1)
-        rollouts = 100 * (1 + 1000 * (4 if cls is SymbioticOrganismsSearch else 1))
+        rollouts = 100 * (1 + 1000 * cls.rollouts_per_iteration)
         rows.append(
             {
                 "method": cls.__name__,

@@ -53,6 +53,9 @@ class RecedingHorizonPlanner(Allocator):
     :param seed: seed of the planner's generator
     """
 
+    #: Rollouts per individual per iteration (sets the iterations a ``budget`` allows).
+    rollouts_per_iteration = 1
+
     def __init__(
         self,
         env: gym.Env,
@@ -75,13 +78,13 @@ class RecedingHorizonPlanner(Allocator):
             raise ValueError(f"budget ({budget} rollouts) must be at least the population ({population})")
         self.env: Any = base
         self.population = population
-        self.iterations = iterations if budget is None else max(1, (budget - population) // population)
+        per_iteration = self.rollouts_per_iteration * population
+        self.iterations = iterations if budget is None else max(1, (budget - population) // per_iteration)
         self.budget = budget
         self.horizon = horizon
         self.replan_every = replan_every
         self.tail = tail
         self.foresight = foresight
-        self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.greedy = GreedyAllocator()
         self._plan: np.ndarray | None = None
@@ -323,10 +326,7 @@ class SymbioticOrganismsSearch(_ContinuousPlanner):
     :param kwargs: :class:`RecedingHorizonPlanner` keywords
     """
 
-    def __init__(self, env: gym.Env, population: int = 100, iterations: int = 1000, **kwargs: Any) -> None:
-        super().__init__(env, population=population, iterations=iterations, **kwargs)
-        if self.budget is not None:
-            self.iterations = max(1, (self.budget - population) // (4 * population))
+    rollouts_per_iteration = 4  # mutualism (two), commensalism and parasitism
 
     def _keep_better(self, x: np.ndarray, fit: np.ndarray, idx: np.ndarray, cand: np.ndarray, evaluate: Evaluate) -> None:
         cand_fit = evaluate(self.decode(cand))
