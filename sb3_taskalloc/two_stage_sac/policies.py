@@ -62,7 +62,7 @@ class SelectState:
         self.covered = th.zeros(B, M, dtype=th.bool, device=task_of.device)
         self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
         self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
-        self.choosable = self.avail & (useful_supply(view, task_of, self.rem)[0] > COVER_TOL)  # (B, N)
+        self.choosable = choosable(view, task_of, self.avail, self.rem)  # (B, N)
         self.active = view.task_mask & still_winnable(view, self.seg, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
@@ -89,7 +89,7 @@ class SelectState:
         self.covered = self.covered | newly
         picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
         self.avail = self.avail & ~picked
-        self.choosable = self.avail & (useful_supply(v, self.task_of, rem)[0] > COVER_TOL)
+        self.choosable = choosable(v, self.task_of, self.avail, rem)
         done = valid & (newly | ~still_winnable(v, self.seg, self.choosable, self.pc_own, self.rem, self.cost))
         self.active = self.active & ~done
         return reward, done
@@ -111,6 +111,15 @@ def useful_supply(view: ObsView, task_of: th.Tensor, rem: th.Tensor) -> tuple[th
     return th.minimum(view.supply, rem_i).sum(-1), rem_i
 
 
+def choosable(view: ObsView, task_of: th.Tensor, avail: th.Tensor, rem: th.Tensor) -> th.Tensor:
+    """(..., B, N) candidates not picked yet that would cover some of their task's remaining demand: the select-stage
+    choices (a candidate that covers nothing could only add cost).
+
+    :param avail: (..., B, N) candidates not picked yet; see :func:`useful_supply` for the others
+    """
+    return avail & (useful_supply(view, task_of, rem)[0] > COVER_TOL)
+
+
 def still_winnable(
     view: ObsView, seg: th.Tensor, choosable: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor
 ) -> th.Tensor:
@@ -121,7 +130,7 @@ def still_winnable(
     minimum: Σ_i min(s_ik, d_k) ≥ d_k holds exactly when Σ_i s_ik ≥ d_k.
 
     :param seg: (B, M, N) candidates of each task
-    :param choosable: (..., B, N) not picked yet and useful to their task (:func:`useful_supply` > 0)
+    :param choosable: (..., B, N) the choices of :func:`choosable`
     :param pc_own: (B, N) pair cost of each entity for the task it is a candidate of
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) pair costs of the picks so far
     :return: (..., B, M) bool

@@ -29,9 +29,9 @@ from sb3_taskalloc.two_stage_sac.policies import (
     TAMPolicy,
     TwinCritic,
     check_spaces,
+    choosable,
     select_features,
     still_winnable,
-    useful_supply,
 )
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
@@ -555,11 +555,11 @@ def _select_round_terms(
     tt = t.view(-1, 1, 1)
     avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
     avail_after = cand & ((rank_own < 0) | (rank_own > tt))
-    choosable = avail & (useful_supply(view, task_of, rem)[0] > COVER_TOL)
-    choosable_after = avail_after & (useful_supply(view, task_of, rem_after)[0] > COVER_TOL)
-    mask = st.seg & choosable.unsqueeze(2) & valid.unsqueeze(-1)
+    choices = choosable(view, task_of, avail, rem)
+    choices_after = choosable(view, task_of, avail_after, rem_after)
+    mask = st.seg & choices.unsqueeze(2) & valid.unsqueeze(-1)
     newly = valid & (rem_after <= COVER_TOL).all(-1)
-    done = valid & (newly | ~still_winnable(view, st.seg, choosable_after, st.pc_own, rem_after, pc_cum))
+    done = valid & (newly | ~still_winnable(view, st.seg, choices_after, st.pc_own, rem_after, pc_cum))
     reward = valid.float() * (-pc + view.reward * newly.float())
 
     task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())
