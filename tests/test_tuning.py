@@ -128,7 +128,9 @@ def test_killed_worker_loses_no_completed_trial(tmp_path):
         if not (tmp_path / "s.log").exists():
             continue
         study = load(tmp_path)
-        if runner.count(study, runner.FINISHED) >= 1 and runner.count(study, (TrialState.RUNNING,)) == 1:
+        running = study.get_trials(states=(TrialState.RUNNING,))
+        # Mid-trial: the running trial has drawn all its parameters (it is training), so its retry must repeat them.
+        if runner.count(study, runner.FINISHED) >= 1 and len(running) == 1 and len(running[0].params) == len(FIXED):
             worker.send_signal(signal.SIGKILL)
             break
     worker.wait(timeout=60)
