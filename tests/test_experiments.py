@@ -13,7 +13,7 @@ import pytest
 
 from sb3_taskalloc.experiments.table import ENVS, METHODS, ROWS, TableRun
 
-CELL = re.compile(r"^(-?\d+(\.\d+)? ± \d+(\.\d+)?|n/a \((size|static)\))$")
+CELL = re.compile(r"^(-?\d+(\.\d+)? ± \d+(\.\d+)?|n/a \((size|static|scratch)\))$")
 
 
 def run_smoke(args: tuple[str, str]) -> str:
@@ -61,7 +61,15 @@ def test_smoke_table_is_well_formed(smoke_tables, env):
         ent = {r["method"]: r["mean"] for r in records if r["row"] == "zero-shot (entity)"}
         assert ent["Ours"] != "n/a" and ent["W/o Pre (random)"] != "n/a"
         assert all((ent[m] == "n/a") == resized for m in ("W/o TAM", "W/o AMIX", "MaskablePPO"))
+        scratch = {r["method"]: r for r in records if r["row"].startswith("from scratch")}
+        assert scratch["Ours"]["mean"] != "n/a" and scratch["Greedy"]["std"] == "static"
+        assert scratch["W/o TAM"]["std"] == "scratch"
+        text = (smoke_tables / env / "table.md").read_text()
+        assert re.search(r"Ours zero-shot / from scratch on the entity shift: (-?\d+\.\d+|n/a)", text), text
+        assert len(list((smoke_tables / env / "models").glob("ours_s0_from_scratch*entity.zip"))) == 1
         assert (smoke_tables / env / "curves.png").stat().st_size > 0
+    goal = r"Ours / best planner \((GA|PSO|SOS)\) on the training env: (-?\d+\.\d+|n/a)"
+    assert re.search(goal, (smoke_tables / env / "table.md").read_text())
 
 
 def test_resume_computes_only_missing_cells(smoke_tables):

@@ -162,11 +162,17 @@ def test_select_losses_match_sequential_closed_form():
 
 
 def test_abandoned_when_unprofitable():
+    view = hand_view(reward=2.5)  # entity 2 covers alone at cost 3 > 2.5; entity 0 (cost 1) keeps the task open
+    st = SelectState(view, th.tensor([[0, -1, 0]]))
+    assert st.active.all()
+    _, done = st.advance(th.tensor([[2]]), th.tensor([[True]]))
+    assert done.all() and st.covered.all() and not st.kept().any()
+    # Whatever the policy picks, the task is not kept: covering costs at least 1 + 3 or 3 > 2.5.
     env = gym.make("TaskAlloc/Almighty-v0", n_skills=1, specialists=2)
     m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16})
-    view = hand_view(reward=1.5)  # covering costs at least 2 > 1.5
-    st = m.policy.select_round(view, th.zeros(1, 3, dtype=th.long), deterministic=True)
-    assert st.covered.all() and not st.kept().any()
+    for deterministic in (True, False):
+        st = m.policy.select_round(view, th.tensor([[0, -1, 0]]), deterministic=deterministic)
+        assert not st.kept().any() and not st.active.any()
 
 
 @pytest.mark.parametrize(

@@ -41,7 +41,7 @@ class ObsView(NamedTuple):
     entity_mask: th.Tensor  # (B, N) bool: free
     task_mask: th.Tensor  # (B, M) bool: open
     present: th.Tensor  # (B, N) bool: entity exists (free or busy)
-    pair: th.Tensor  # (B, N, M, 3) pair features (see :func:`pair_features`)
+    pair: th.Tensor  # (B, N, M, PAIR_FEATURES) fixed pair basis (see :func:`pair_basis`)
 
     @property
     def valid(self) -> th.Tensor:
@@ -59,7 +59,6 @@ def parse_obs(obs: dict[str, th.Tensor]) -> ObsView:
     ent = obs["entity_features"].float()
     supply, demand = obs["entity_supply"].float(), obs["task_demand"].float()
     reward, pc = obs["task_reward"].float(), obs["pair_cost"].float()
-    pair = th.stack([symlog(pc), coverage(supply, demand), symlog(reward.unsqueeze(1) - pc)], dim=-1)
     return ObsView(
         entity=symlog(ent),
         task=symlog(obs["task_features"].float()),
@@ -70,8 +69,22 @@ def parse_obs(obs: dict[str, th.Tensor]) -> ObsView:
         entity_mask=obs["entity_mask"].bool(),
         task_mask=obs["task_mask"].bool(),
         present=(ent.abs().sum(-1) > 0) | obs["entity_mask"].bool(),
-        pair=pair,
+        pair=pair_basis(pc, coverage(supply, demand), reward),
     )
+
+
+#: Number of fixed pair features of :func:`pair_basis`.
+PAIR_FEATURES = 5
+
+
+def pair_basis(pair_cost: th.Tensor, cover: th.Tensor, reward: th.Tensor) -> th.Tensor:
+    """(B, N, M, PAIR_FEATURES) fixed nonlinear features of each (entity, task) pair, computed once per observation
+    and shared by every scorer, which weighs them linearly: symlog pair cost, coverage share, symlog margin
+    m = symlog(reward − pair cost), its positive part relu(m), and whether the entity alone covers the task.
+    A fixed basis with a learned linear read-out instead of a small MLP per scorer: the MLP's hidden layer over every
+    pair of every batch row dominated the cost of a training step."""
+    margin = symlog(reward.unsqueeze(1) - pair_cost)
+    return th.stack([symlog(pair_cost), cover, margin, th.relu(margin), (cover >= 1 - 1e-6).float()], dim=-1)
 
 
 def coverage(supply: th.Tensor, demand: th.Tensor) -> th.Tensor:
@@ -138,14 +151,14 @@ class TAMEncoder(nn.Module):
 
 
 class PairScorer(nn.Module):
-    """Pairwise score s_ij = h_i·g_j / scale + φ(pair_ij): the TAM dot product (paper: /√d for the actor) plus an
-    optional learned term of the pair features (pair cost, coverage, reward − cost).
+    """Pairwise score s_ij = h_i·g_j / scale + w·φ_ij: the TAM dot product (paper: /√d for the actor) plus an
+    optional learned linear term of the fixed pair basis φ (pair cost, coverage, margin; :func:`pair_basis`).
 
     :param entity_dim: entity feature size
     :param task_dim: task feature size
     :param hidden_dim: embedding size d
     :param scale: divisor of the dot product (√d for the actor, 1 for the critic, reference spec B20)
-    :param pair_features: add φ(symlog pair cost, coverage share, symlog(task reward − pair cost)) (``ObsView.pair``)
+    :param pair_features: add a learned linear term w·φ_ij of the fixed pair basis φ (:func:`pair_basis`)
     :param n_attention_layers: see :class:`TAMEncoder`
     :param activation_fn: activation of the MLPs
     """
@@ -163,7 +176,7 @@ class PairScorer(nn.Module):
         super().__init__()
         self.encoder = TAMEncoder(entity_dim, task_dim, hidden_dim, n_attention_layers, activation_fn)
         self.scale = scale
-        self.pair = mlp(3, 16, 1, activation_fn) if pair_features else None
+        self.pair = nn.Linear(PAIR_FEATURES, 1) if pair_features else None
 
     def forward(self, view: ObsView) -> th.Tensor:
         h, g = self.encoder(view)
@@ -219,6 +232,20 @@ class FlatScorer(_FlatNet):
         return self.flat_forward(view, symlog(view.pair_cost)).view(-1, self.n_entities, self.n_tasks)
 
 
+class MixContext(NamedTuple):
+    """Action-independent tensors of :class:`AMIXMixer` for a batch of states (reused by the actor loss)."""
+
+    mask: th.Tensor  # (B, N) entities that are mixed (free, with an open task)
+    att: th.Tensor  # (B, N, N) SHN attention
+    v: th.Tensor  # (B, N, H) SHN values
+    weights: th.Tensor | None  # (B, N, H) |A V| when monotonic
+    bias: th.Tensor  # (B, H) hyper-bias
+
+    def detach(self) -> MixContext:
+        weights = None if self.weights is None else self.weights.detach()
+        return MixContext(self.mask, self.att.detach(), self.v.detach(), weights, self.bias.detach())
+
+
 class AMIXMixer(nn.Module):
     """Attention-hypernetwork mixer (AMIX with its self-attention hypernetwork SHN).
 
@@ -264,30 +291,38 @@ class AMIXMixer(nn.Module):
         else:
             self.out = mlp(hidden_dim, hidden_dim, 1, activation_fn)
 
-    def forward(self, q_i: th.Tensor, view: ObsView) -> th.Tensor:
-        """:param q_i: (B, N) per-entity values; :return: (B,) Q_tot"""
+    def context(self, view: ObsView) -> MixContext:
+        """The action-independent part of the mixer for a batch of states: attention, values and hyper-bias."""
         mask = view.assignable
         x = view.entity * mask.unsqueeze(-1)
         k, q, v = self.k(x), self.q(x), self.v(x)
-        scores = (k @ q.transpose(1, 2)) / math.sqrt(self.attention_dim)
-        att = th.softmax(scores.masked_fill(~mask.unsqueeze(1), NEG), dim=-1)
-        q_i = (q_i * mask).unsqueeze(1)  # (B, 1, N)
-        if self.monotonic:
-            w = (att @ v).abs()  # (B, N, H): one hyper-weight vector per entity
-            mixed = (q_i @ w).squeeze(1)
-        else:
-            mixed = ((q_i @ att) @ v).squeeze(1)  # Σ_i Q_i (A V)_i computed as (Qᵀ A) V: O(N²) instead of O(N²H)
-        bias = self.const_bias
+        # 1/√d on the (B, N, d) keys rather than the (B, N, N) scores; an additive key mask rather than masked_fill.
+        scores = (k / math.sqrt(self.attention_dim)) @ q.transpose(1, 2)
+        att = th.softmax(scores + (~mask).unsqueeze(1).float() * NEG, dim=-1)
+        bias = self.const_bias.expand(mask.shape[0], -1)
         if self.bias is not None:
             pres = view.present.unsqueeze(-1).float()
             tmask = view.task_mask.unsqueeze(-1).float()
             ent_mean = (view.entity * pres).sum(1) / pres.sum(1).clamp_min(1)
             task_mean = (view.task * tmask).sum(1) / tmask.sum(1).clamp_min(1)
             bias = bias + self.bias(th.cat([ent_mean, task_mean], -1))
-        hidden = th.relu(mixed + bias)
+        if self.monotonic:
+            return MixContext(mask, att, v, (att @ v).abs(), bias)  # one hyper-weight vector per entity
+        return MixContext(mask, att, v, None, bias)
+
+    def mix(self, q_i: th.Tensor, ctx: MixContext) -> th.Tensor:
+        """:param q_i: (B, N) per-entity values; :param ctx: :meth:`context` of the states; :return: (B,) Q_tot"""
+        q_i = (q_i * ctx.mask).unsqueeze(1)  # (B, 1, N)
+        # Σ_i Q_i (A V)_i, computed as (Qᵀ A) V without monotonicity: O(N²) instead of O(N²H).
+        mixed = (q_i @ ctx.weights if ctx.weights is not None else (q_i @ ctx.att) @ ctx.v).squeeze(1)
+        hidden = th.relu(mixed + ctx.bias)
         if self.monotonic:
             return hidden @ self.out_w.abs() + self.out_b
         return self.out(hidden).squeeze(-1)
+
+    def forward(self, q_i: th.Tensor, view: ObsView) -> th.Tensor:
+        """:param q_i: (B, N) per-entity values; :return: (B,) Q_tot"""
+        return self.mix(q_i, self.context(view))
 
 
 class GlobalMixer(_FlatNet):
@@ -316,17 +351,17 @@ class GlobalMixer(_FlatNet):
 #: Size of the per-step task state of the select stage (remaining demand K + 4 scalars).
 SELECT_TASK_EXTRA = 4
 #: Size of the per-step dynamic entity features of the select stage.
-SELECT_DYN = 4
+SELECT_DYN = 6
 
 
 class PointerHead(nn.Module):
     """Pointer scores of the select stage for the candidates of each task.
 
-    u_i = d_i·e_j^t / √d + φ(x_i^t) (+ b(e_j^t) for a critic), where e_j^t encodes task j's state after t picks
-    (remaining demand, reward, cost so far, number of picks), d_i the entity and x_i^t its dynamic pair features with
-    task j (coverage of the remaining demand, pair cost, margin, waste). This dot-product pointer replaces the paper's
-    additive vᵀ tanh(W1 e + W2 d): it needs no (batch × entities × hidden) tensor per decoding step, which makes
-    training an order of magnitude cheaper on CPUs.
+    u_i = d_i·e_j^t / √d + w·x_i^t (+ b(e_j^t) for a critic), where e_j^t encodes task j's state after t picks
+    (remaining demand, reward, cost so far, number of picks), d_i the entity and x_i^t a fixed basis of its dynamic
+    pair features with task j (coverage of the remaining demand, pair cost, margin, waste), weighed linearly.
+    This dot-product pointer replaces the paper's additive vᵀ tanh(W1 e + W2 d): it needs no (batch × entities ×
+    hidden) tensor per decoding step, which makes training an order of magnitude cheaper on CPUs.
 
     :param entity_dim: entity feature size
     :param n_resources: K
@@ -346,7 +381,7 @@ class PointerHead(nn.Module):
         super().__init__()
         self.entity = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
         self.task = mlp(n_resources + SELECT_TASK_EXTRA, hidden_dim, hidden_dim, activation_fn)
-        self.dyn = mlp(SELECT_DYN, 16, 1, activation_fn)
+        self.dyn = nn.Linear(SELECT_DYN, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
         self.value = nn.Linear(hidden_dim, 1) if state_value else None
         self.scale = math.sqrt(hidden_dim)
 

@@ -7,6 +7,11 @@ seeds of each seed's mean deterministic return over ``eval_episodes`` seeded eva
 - Train: the method trained on ``TaskAlloc/<Env>-v0`` for ``train_steps`` (RL) or run on it (baselines).
 - Zero-shot: the trained model on the ``EntityShift`` / ``TaskShift`` preset, no learning (baselines: run there).
 - Few-shot: the trained model fine-tuned on the preset for ``few_shot_steps`` (the paper: 200 episodes).
+- From scratch: Ours trained on the preset itself with the training budget: the reference of the zero-shot goal
+  (zero-shot ≥ 0.8 × from scratch).
+
+Below the table, the goals of the comparison are computed from its means: Ours against the best planner, Greedy and
+the W/o Pre rows on the training env, and zero-shot against from scratch on each preset.
 
 Every finished cell is appended to ``cells.csv`` and every trained model saved under ``models/``, so an interrupted
 run resumes where it stopped (``--fresh`` starts over).
@@ -27,7 +32,17 @@ import numpy as np
 #: Planner settings of the ``local`` and ``smoke`` budgets (rollouts per re-plan are what makes them slow).
 PLANNER_BUDGET: dict[str, Any] = {"population": 20, "budget": 100}
 
-ROWS = ["train", "zero-shot (entity)", "few-shot (entity)", "zero-shot (task)", "few-shot (task)"]
+ROWS = [
+    "train",
+    "zero-shot (entity)",
+    "few-shot (entity)",
+    "from scratch (entity)",
+    "zero-shot (task)",
+    "few-shot (task)",
+    "from scratch (task)",
+]
+#: Columns trained from scratch on the presets (the reference of the zero-shot goal; the others would double the cost).
+SCRATCH_METHODS = ("Ours",)
 ENVS = ["Almighty", "EPT", "RBF", "MT"]
 EPISODE_STEPS = {"Almighty": 1, "EPT": 100, "RBF": 100, "MT": 150}
 
@@ -114,7 +129,8 @@ BUDGETS: dict[str, Budget] = {
 FOOTNOTES = {
     "size": "n/a (size): the method's networks are built for the training env's entity/task counts (encoder='mlp', "
     "mixer='global', MaskablePPO's flat policy); the preset has other counts.",
-    "static": "n/a (no learning): the baseline has nothing to fine-tune; its zero-shot row is its run on the preset.",
+    "static": "n/a (no learning): the baseline has nothing to fine-tune or train; its zero-shot row is its run on the preset.",
+    "scratch": "n/a (scratch): only Ours is trained from scratch on the presets, as the reference of its zero-shot goal.",
     "preset": "n/a (no preset): Almighty has no entity or task shift presets.",
 }
 
@@ -238,7 +254,7 @@ class TableRun:
             vec = DummyVecEnv([lambda: Monitor(self.budget.make(env_id), filename=str(log))])
             return MaskablePPO("MultiInputPolicy", vec, seed=seed, **self.budget.ppo)
         env = Monitor(self.budget.make(env_id), filename=str(log))
-        kwargs = {**zoo_hyperparameters(env_id), **self.budget.sac}
+        kwargs = {**zoo_hyperparameters(f"TaskAlloc/{self.env}-v0"), **self.budget.sac}  # same settings on the presets
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 
@@ -254,14 +270,16 @@ class TableRun:
 
         return TwoStageSAC.load(path, env=env)
 
-    def trained(self, name: str, seed: int) -> Any:
-        """The model of ``name`` trained on the train env (loaded when saved before)."""
-        method, env_id = METHODS[name], row_env(self.env, "train")
+    def trained(self, name: str, seed: int, row: str = "train") -> Any:
+        """The model of ``name`` trained from scratch on the env of ``row`` (the train env, or a preset for the
+        "from scratch" rows) with the training budget and the train env's hyperparameters (loaded when saved before)."""
+        method, env_id = METHODS[name], row_env(self.env, row)
         assert env_id is not None
-        path = self._model_path(name, seed)
+        path = self._model_path(name, seed, row)
         if path.exists():
             return self._load(method, path)
-        model = self._new_model(method, env_id, seed, self.folder / "logs" / f"{_slug(name)}_s{seed}.monitor.csv")
+        suffix = "" if row == "train" else f"_{_slug(row)}"
+        model = self._new_model(method, env_id, seed, self.folder / "logs" / f"{_slug(name)}_s{seed}{suffix}.monitor.csv")
         model.learn(self.budget.steps(self.env, self.budget.train_episodes))
         path.parent.mkdir(parents=True, exist_ok=True)
         model.save(path)
@@ -277,7 +295,7 @@ class TableRun:
             return "n/a:preset"
         budget = self.budget
         if not method.learns:
-            if row.startswith("few-shot"):
+            if row.startswith(("few-shot", "from scratch")):
                 return "n/a:static"
             from sb3_taskalloc import baselines
 
@@ -287,6 +305,10 @@ class TableRun:
                 return f"{evaluate(None, env_id, budget, seed, method, lambda e: cls(e, seed=seed, **planner_kwargs)):.6g}"
             agent = cls(**budget.milp) if method.target == "MILPAllocator" else cls()
             return f"{evaluate(agent, env_id, budget, seed, method):.6g}"
+        if row.startswith("from scratch"):
+            if name not in SCRATCH_METHODS:
+                return "n/a:scratch"
+            return f"{evaluate(self.trained(name, seed, row), env_id, budget, seed, method):.6g}"
         model = self.trained(name, seed)
         if row == "train":
             return f"{evaluate(model, env_id, budget, seed, method):.6g}"
@@ -359,9 +381,50 @@ class TableRun:
             if any(c and "(preset)" not in c for c in cells):
                 lines.append(f"| {row} | " + " | ".join(cells) + " |")
         lines += ["", *[f"- {FOOTNOTES[k]}" for k in sorted(notes - {"preset"})]]
+        goals = self.goals()
+        if goals:
+            lines += ["", "Goals (ratios of the means above):", "", *[f"- {g}" for g in goals]]
         path = self.folder / "table.md"
         path.write_text("\n".join(lines) + "\n")
         return path
+
+    def means(self) -> dict[tuple[str, str], float]:
+        """(row, method) → mean over the finished seeds (numbers only)."""
+        done = self.done()
+        out: dict[tuple[str, str], float] = {}
+        for row in ROWS:
+            for name in self.methods:
+                numbers = [float(v) for (m, r, _), v in done.items() if m == name and r == row and not v.startswith("n/a")]
+                if numbers:
+                    out[(row, name)] = float(np.mean(numbers))
+        return out
+
+    def goals(self) -> list[str]:
+        """The comparison's goals, as text lines: Ours / best of GA, PSO, SOS (goal ≥ 1.1), Ours / Greedy (≥ 1), Ours
+        against both W/o Pre rows (above), and zero-shot / from scratch on each preset (≥ 0.8)."""
+        mean = self.means()
+        ours = mean.get(("train", "Ours"))
+        lines: list[str] = []
+        if ours is None:
+            return lines
+
+        def ratio(a: float, b: float) -> str:
+            return f"{a / b:.3f}" if b > 0 else "n/a (reference ≤ 0)"
+
+        planners = {m: mean[("train", m)] for m in ("GA", "PSO", "SOS") if ("train", m) in mean}
+        if planners:
+            best = max(planners, key=planners.__getitem__)
+            lines.append(f"Ours / best planner ({best}) on the training env: {ratio(ours, planners[best])} (goal ≥ 1.1)")
+        if ("train", "Greedy") in mean:
+            lines.append(f"Ours / Greedy on the training env: {ratio(ours, mean[('train', 'Greedy')])} (goal ≥ 1)")
+        for m in ("W/o Pre (sequence)", "W/o Pre (random)"):
+            if ("train", m) in mean:
+                lines.append(f"Ours − {m} on the training env: {ours - mean[('train', m)]:+.1f} (goal > 0)")
+        for shift in ("entity", "task"):
+            zero, scratch = mean.get((f"zero-shot ({shift})", "Ours")), mean.get((f"from scratch ({shift})", "Ours"))
+            if zero is not None and scratch is not None:
+                lines.append(f"Ours zero-shot / from scratch on the {shift} shift: {ratio(zero, scratch)} (goal ≥ 0.8)")
+        return lines
 
     def plot_curves(self) -> Path | None:
         """``curves.png``: training episode returns of the RL methods, averaged over seeds (from the Monitor logs)."""

@@ -17,6 +17,7 @@ from sb3_taskalloc.common.torch_layers import (
     AMIXMixer,
     FlatScorer,
     GlobalMixer,
+    MixContext,
     ObsView,
     PairScorer,
     PointerHead,
@@ -150,8 +151,9 @@ def select_features(
     :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param pc_own: (B, N) pair cost of each entity for that task
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
-    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 4): coverage of the remaining
-        demand, symlog pair cost, symlog margin (reward − cost so far − pair cost), waste share of the supply
+    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 6): coverage of the remaining
+        demand, symlog pair cost, symlog margin m (reward − cost so far − pair cost), relu(m), waste share of the supply,
+        and whether the entity alone covers the remaining demand (a fixed basis that the pointer weighs linearly)
     """
     demand_sum = view.demand.sum(-1).clamp_min(1e-6)
     reward = view.reward.expand_as(cost)
@@ -170,7 +172,8 @@ def select_features(
     cov = useful / rem_i.sum(-1).clamp_min(1e-6)
     waste = 1.0 - useful / view.supply.sum(-1).clamp_min(1e-6)
     margin = th.gather(reward - cost, -1, idx) - pc_own
-    dyn = th.stack([cov, symlog(pc_own).expand_as(cov), symlog(margin), waste], dim=-1)
+    m = symlog(margin)
+    dyn = th.stack([cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, (cov >= 1 - 1e-6).float()], dim=-1)
     return task_state, dyn
 
 
@@ -190,6 +193,19 @@ class PreAssignActor(nn.Module):
         return MaskedCategorical(self.scorer(view), view.valid)
 
 
+class CriticContext(NamedTuple):
+    """Action-independent part of a :class:`MixingCritic` for a batch of states: Q_i(s, j) and the mixer's context."""
+
+    view: ObsView
+    scores: th.Tensor | None  # (B, N, M) Q_i(s, j) (None with the global mixer)
+    mix: MixContext | None  # AMIX attention, values and hyper-bias (None with the global mixer)
+
+    def detach(self) -> CriticContext:
+        return CriticContext(
+            self.view, None if self.scores is None else self.scores.detach(), None if self.mix is None else self.mix.detach()
+        )
+
+
 class MixingCritic(nn.Module):
     """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) with Q_i(s, j) = o_i·q_j (+ pair term), or the global MLP (W/o AMIX).
 
@@ -202,12 +218,21 @@ class MixingCritic(nn.Module):
         self.scorer = scorer
         self.mixer = mixer
 
+    def context(self, view: ObsView) -> CriticContext:
+        """Everything that does not depend on the assignment (computed once, then mixed for several assignments)."""
+        if self.scorer is None:
+            return CriticContext(view, None, None)
+        return CriticContext(view, self.scorer(view), self.mixer.context(view))  # type: ignore[operator]
+
+    def mix(self, ctx: CriticContext, assign: th.Tensor) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
+        if ctx.scores is None:
+            return self.mixer(assign, ctx.view)
+        return self.mixer.mix((ctx.scores * assign).sum(-1), ctx.mix)  # type: ignore[operator]
+
     def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
         """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
-        if self.scorer is None:
-            return self.mixer(assign, view)
-        q_i = (self.scorer(view) * assign).sum(-1)
-        return self.mixer(q_i, view)
+        return self.mix(self.context(view), assign)
 
 
 class TwinCritic(nn.Module):
@@ -221,6 +246,12 @@ class TwinCritic(nn.Module):
 
     def forward(self, view: ObsView, assign: th.Tensor) -> tuple[th.Tensor, ...]:
         return tuple(q(view, assign) for q in self.q_networks)
+
+    def contexts(self, view: ObsView) -> list[CriticContext]:
+        return [q.context(view) for q in self.q_networks]  # type: ignore[operator]
+
+    def mix(self, contexts: list[CriticContext], assign: th.Tensor) -> tuple[th.Tensor, ...]:
+        return tuple(q.mix(ctx, assign) for q, ctx in zip(self.q_networks, contexts, strict=True))  # type: ignore[operator]
 
 
 class SelectCritic(nn.Module):
@@ -260,7 +291,7 @@ class TAMPolicy(BasePolicy):
     :param lr_schedule: learning rate schedule
     :param hidden_dim: width d of every embedding and hidden layer (paper: 64)
     :param n_attention_layers: self-attention blocks in the TAM encoders (0: MLP embeddings, as the paper)
-    :param pair_features: add a learned term of (pair cost, coverage, reward − cost) to the TAM scores
+    :param pair_features: add a learned linear term of the fixed pair basis (pair cost, coverage, margin) to the TAM scores
     :param preassign: two stages (True) or the "W/o Pre" ablation: tasks pick from one shared pool
     :param task_order: order of the tasks without pre-assignment: ``"sequential"`` (slot order) or ``"random"``
     :param encoder: ``"tam"`` (size-agnostic attention module) or ``"mlp"`` (the "W/o TAM" ablation, size-specific)

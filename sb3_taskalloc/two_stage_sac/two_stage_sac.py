@@ -22,6 +22,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.two_stage_sac.policies import (
     COVER_TOL,
+    CriticContext,
     PreAssignActor,
     SelectCritic,
     Selector,
@@ -60,7 +61,9 @@ class TwoStageSAC(OffPolicyAlgorithm):
        learning signal (the published code regressed internal select returns instead, reference spec B27).
     3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
        (true entropy and expectation over actions; the published code used −Σ log p and p·Q of the taken action, B1).
-       The actor loss is built with the critics frozen (their scores and hyper-weights are constants of it), so its
+       Both losses use the same critic values, computed once before either network steps (as in the original SAC
+       code; SB3's SAC re-evaluates the critic after its step): the actor loss reuses the critics' per-entity scores
+       and AMIX attention, values and hyper-bias, detached, with the critics frozen, so it costs one re-mix and its
        backward pass never runs through the critic networks.
     4. α auto-tuned (``ent_coef="auto"``): loss log α·(H̄(s) − H̄*), H̄ = mean per-entity entropy,
        H̄* = ``target_entropy_ratio`` × mean_i log(#valid tasks of i); or fixed (paper: 0.05).
@@ -74,11 +77,12 @@ class TwoStageSAC(OffPolicyAlgorithm):
        decoding stops as soon as it can no longer be kept: its choosable candidates cannot cover the remaining
        demand, or the cost so far plus the cheapest of them reaches the reward (``still_winnable``); that task would
        have been abandoned anyway. The loop and the select-stage transitions get shorter.
-    6. Pointer: logits u_i = d_i·e_j^t/√d + φ(x_i^t), a dot-product pointer instead of the paper's additive
+    6. Pointer: logits u_i = d_i·e_j^t/√d + w·x_i^t, a dot-product pointer instead of the paper's additive
        vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step: ~10× cheaper to train);
        e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
-       T^{t+1} = T^t + f^a(u^t)); x_i^t = the entity's coverage of that demand, pair cost, margin and waste. The select
-       critics add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
+       T^{t+1} = T^t + f^a(u^t)); x_i^t = a fixed basis of the entity's coverage of that demand, pair cost, margin
+       and waste, weighed linearly. The select critics add a per-task baseline b(e_j^t). All tasks of all batch rows
+       decode in parallel.
     7. Scores are divided by √d in the actor (paper) and not in the critics (B20). Inputs are symlog-normalised.
     8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks.
     9. Ablations are policy kwargs: ``preassign=False, task_order="sequential"|"random"`` (W/o Pre),
@@ -286,10 +290,14 @@ class TwoStageSAC(OffPolicyAlgorithm):
         )
         if ent_loss is not None:
             logs["ent_coef_loss"] = ent_loss
-        _optimize(self.critic.optimizer, losses["critic_loss"])
-        # Actor loss with the critics' fresh values (the actor has not changed: its distribution is reused).
-        actor_loss = actor_loss_of(self, view, losses["ent_coef"], losses["dist"])
-        _optimize(self.actor.optimizer, actor_loss)
+        # Actor and critic losses on the same critic values (both before either step, as in the original SAC code):
+        # the actor loss reuses the critics' scores and mixer context, detached, and the actor's distribution.
+        actor_loss = actor_loss_of(self, view, losses["ent_coef"], losses["dist"], losses["contexts"])
+        self.critic.optimizer.zero_grad()
+        self.actor.optimizer.zero_grad()
+        (losses["critic_loss"] + actor_loss).backward()  # disjoint parameters: each network gets its own gradient
+        self.critic.optimizer.step()
+        self.actor.optimizer.step()
         logs.update(critic_loss=losses["critic_loss"].item(), actor_loss=actor_loss.item())
         return logs
 
@@ -458,11 +466,13 @@ def preassign_losses(
         next_v = next_q + alpha * next_dist.entropy().sum(1)
         target_q = data.rewards.squeeze(-1) + (1 - data.dones.squeeze(-1)) * model.gamma * next_v
     assign = data.candidates.transpose(1, 2).float()  # one-hot c: (B, N, M)
-    current = model.critic(view, assign)
+    contexts = model.critic.contexts(view)
+    current = model.critic.mix(contexts, assign)
     critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
     return {
         "critic_loss": critic_loss,
         "dist": dist,
+        "contexts": contexts,
         "target_q": target_q,
         "ent_coef": alpha,
         "mean_entropy": mean_entropy,
@@ -470,19 +480,27 @@ def preassign_losses(
     }
 
 
-def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha: th.Tensor, dist: MaskedCategorical | None = None) -> th.Tensor:
+def actor_loss_of(
+    model: TwoStageSAC,
+    view: ObsView,
+    alpha: th.Tensor,
+    dist: MaskedCategorical | None = None,
+    contexts: list[CriticContext] | None = None,
+) -> th.Tensor:
     """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)).
 
     The critics are frozen while it is built, so autograd records only the path through π (the per-entity scores
     and the mixer's hyper-weights are constants of the actor loss): no backward pass through the critic networks.
 
     :param dist: the actor's distribution on ``view`` when already computed (else computed here)
+    :param contexts: the critics' :meth:`~TwinCritic.contexts` on ``view`` when already computed (detached here)
     """
     assert model.actor is not None and model.critic is not None
     if dist is None:
         dist = model.actor(view)
     with frozen(model.critic):
-        q_pi = th.stack(model.critic(view, dist.probs), dim=0).min(0).values
+        contexts = model.critic.contexts(view) if contexts is None else [ctx.detach() for ctx in contexts]
+        q_pi = th.stack(model.critic.mix(contexts, dist.probs), dim=0).min(0).values
     return (-alpha * dist.entropy().sum(1) - q_pi).mean()
 
 
