@@ -11,7 +11,8 @@ import torch as th
 from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
-from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.baselines import GreedyAllocator
+from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical
 from sb3_taskalloc.common.torch_layers import AMIXMixer, ObsView, parse_obs
 from sb3_taskalloc.two_stage_sac.policies import SelectState
 from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, preassign_losses, select_losses
@@ -227,3 +228,79 @@ def test_gradient_step_changes_parameters(model):
         changed = [k for k in after if k.startswith(prefix) and not th.equal(before[k], after[k])]
         assert changed, f"no parameter of {prefix} changed"
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
+
+
+def test_segmented_categorical_equals_masked_categorical_over_tasks():
+    th.manual_seed(0)
+    T, B, N, M = 3, 4, 9, 3
+    seg = th.randint(0, M, (B, N))
+    logits = th.randn(T, B, N, requires_grad=True)
+    mask = th.rand(T, B, N) > 0.4
+    mask[0, 0] = False  # a row with no choice at all
+    seg_dist = SegmentedCategorical(logits, mask, seg, M)
+    own = seg.unsqueeze(1) == th.arange(M).view(1, M, 1)  # (B, M, N)
+    full = MaskedCategorical(logits.unsqueeze(2).expand(T, B, M, N), mask.unsqueeze(2) & own)
+    values = th.randn(T, B, N)
+    th.testing.assert_close(seg_dist.expect(values), (full.probs * values.unsqueeze(2)).sum(-1))
+    th.testing.assert_close(seg_dist.entropy(), full.entropy())
+    th.testing.assert_close(seg_dist.probs, (full.probs * own).sum(2))
+    assert th.isfinite(seg_dist.log_probs).all() and seg_dist.entropy()[0, 0].abs().sum() == 0
+    g_seg = th.autograd.grad(seg_dist.entropy().sum(), logits)[0]
+    g_full = th.autograd.grad(full.entropy().sum(), logits)[0]
+    th.testing.assert_close(g_seg, g_full)
+
+
+def test_select_losses_match_sequential_decoding_on_many_tasks():
+    """The batched, teacher-forced select-stage terms equal a step-by-step replay of the stored decisions with the
+    inference-time state machine, on RBF observations where many tasks decode at once."""
+    env = gym.make("TaskAlloc/RBF-v0")
+    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16})
+    policy = m.policy
+    obs_list, (obs, _) = [], env.reset(seed=3)
+    for _ in range(4):
+        obs_list.append(obs)
+        obs, *_ = env.step(GreedyAllocator().predict(obs)[0])
+    obs_t = {k: th.as_tensor(np.stack([o[k] for o in obs_list])) for k in obs_list[0]}
+    view = parse_obs(obs_t)
+    with th.no_grad():
+        dec = policy.decide(view, deterministic=False)
+    alpha = th.tensor(0.3)
+    out = select_losses(policy, view, dec.candidates, dec.pick_rank, alpha, 0.5)
+    assert out["n"] > 8
+    c = th.where(dec.candidates.any(1), dec.candidates.float().argmax(1), -1)
+    B, M, N = dec.pick_rank.shape
+    st = SelectState(view, c)
+    d = policy.selector.head.embed_entities(view)
+    dc, dt = policy.select_critic.embed(view), policy.select_critic_target.embed(view)
+    terms: dict[str, list[th.Tensor]] = {k: [] for k in ("valid", "r", "done", "v", "actor", "q1", "q2", "h", "n")}
+    for t in range(int(dec.pick_rank.max()) + 1):
+        picked = dec.pick_rank == t  # (B, M, N)
+        valid = picked.any(-1)
+        picks = picked.float().argmax(-1)
+        ts, dyn = st.features()
+        mask = st.choice_mask()
+        dist = MaskedCategorical(policy.selector.head(d, ts, dyn, c).unsqueeze(1).expand(B, M, N), mask)
+        qs = policy.select_critic(dc, ts, dyn, c)
+        qt = th.minimum(*policy.select_critic_target(dt, ts, dyn, c)).unsqueeze(1)
+        min_q = th.minimum(*qs).unsqueeze(1)
+        terms["v"].append((dist.probs * (qt - alpha * dist.log_probs)).sum(-1))
+        terms["actor"].append((dist.probs * (alpha * dist.log_probs - min_q)).sum(-1))
+        terms["q1"].append(th.gather(qs[0], 1, picks))
+        terms["q2"].append(th.gather(qs[1], 1, picks))
+        terms["h"].append(dist.entropy())
+        terms["n"].append(mask.sum(-1).float())
+        assert (mask.any(-1) | ~valid).all()  # every stored pick was a choice
+        r, done = st.advance(picks, valid)
+        terms["valid"].append(valid)
+        terms["r"].append(r)
+        terms["done"].append(done)
+    stk = {k: th.stack(v) for k, v in terms.items()}
+    valid = stk["valid"]
+    v_next = th.cat([stk["v"][1:], th.zeros_like(stk["v"][:1])])
+    y = (stk["r"] + (1 - stk["done"].float()) * v_next)[valid]
+    th.testing.assert_close(out["target"], y.detach(), atol=1e-5, rtol=1e-5)
+    expected = 0.5 * (F.mse_loss(stk["q1"][valid], y.detach()) + F.mse_loss(stk["q2"][valid], y.detach()))
+    th.testing.assert_close(out["critic_loss"], expected, atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out["actor_loss"], stk["actor"][valid].mean(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out["entropy"], stk["h"][valid], atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out["target_entropy"], 0.5 * th.log(stk["n"][valid]), atol=1e-6, rtol=1e-6)

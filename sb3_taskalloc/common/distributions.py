@@ -40,3 +40,51 @@ def masked_pick(masked_logits: th.Tensor, deterministic: bool) -> th.Tensor:
         u = th.rand_like(masked_logits).clamp_(1e-10, 1.0 - 1e-7)
         masked_logits = masked_logits - th.log(-th.log(u))
     return th.argmax(masked_logits, dim=-1)
+
+
+def segment_sum(x: th.Tensor, seg: th.Tensor, n_seg: int, vector: bool = False) -> th.Tensor:
+    """Sum entity values into their segments (the task each entity is a candidate of).
+
+    :param x: (..., B, N) values per entity, or (..., B, N, K) with ``vector=True``
+    :param seg: (B, N) segment of each entity in [0, n_seg) (or already expanded to x's entity shape)
+    :param n_seg: number of segments M
+    :param vector: x has a trailing feature axis
+    :return: (..., B, M), or (..., B, M, K) with ``vector=True``
+    """
+    if vector:
+        out = x.new_zeros(*x.shape[:-2], n_seg, x.shape[-1])
+        return out.scatter_add_(-2, seg.unsqueeze(-1).expand_as(x), x)
+    return x.new_zeros(*x.shape[:-1], n_seg).scatter_add_(-1, seg.expand_as(x), x)
+
+
+class SegmentedCategorical:
+    """One categorical per segment over the entities of that segment, kept in (..., B, N) tensors: entity i belongs to
+    segment ``seg[b, i]`` (the task it is a candidate of). Equal to :class:`MaskedCategorical` over (..., B, M, N)
+    logits that repeat each entity's logit in its own task's row and mask the others, at 1/M of the size. Segments
+    without an allowed entity get zero probabilities and entropy.
+
+    :param logits: (..., B, N) scores
+    :param mask: (..., B, N) bool, allowed choices
+    :param seg: (B, N) segment of each entity in [0, n_seg) (masked entities may point anywhere)
+    :param n_seg: number of segments M
+    """
+
+    def __init__(self, logits: th.Tensor, mask: th.Tensor, seg: th.Tensor, n_seg: int) -> None:
+        self.mask, self.n_seg = mask, n_seg
+        self.seg = seg.expand_as(mask)
+        masked = logits.masked_fill(~mask, NEG)
+        with th.no_grad():  # a per-segment shift for stability; the log-softmax does not depend on it
+            shift = masked.new_full((*mask.shape[:-1], n_seg), NEG).scatter_reduce_(-1, self.seg, masked, "amax")
+        z = masked - th.gather(shift, -1, self.seg)
+        den = segment_sum(th.exp(z) * mask, self.seg, n_seg)
+        log_probs = z - th.log(th.gather(den, -1, self.seg).clamp_min(1e-30))
+        self.log_probs = log_probs.masked_fill(~mask, 0.0)
+        self.probs = th.exp(self.log_probs) * mask
+
+    def expect(self, values: th.Tensor) -> th.Tensor:
+        """(..., B, M) Σ_i π(i) values_i over each segment's entities."""
+        return segment_sum(self.probs * values, self.seg, self.n_seg)
+
+    def entropy(self) -> th.Tensor:
+        """(..., B, M) entropy of each segment's distribution."""
+        return -self.expect(self.log_probs)

@@ -11,7 +11,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_taskalloc.common.distributions import MaskedCategorical, masked_pick
+from sb3_taskalloc.common.distributions import MaskedCategorical, masked_pick, segment_sum
 from sb3_taskalloc.common.torch_layers import (
     NEG,
     AMIXMixer,
@@ -64,7 +64,7 @@ class SelectState:
         self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
         self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
         self.choosable = choosable(view, task_of, self.avail, self.rem)  # (B, N)
-        self.active = view.task_mask & still_winnable(view, self.seg, self.choosable, self.pc_own, self.rem, self.cost)
+        self.active = view.task_mask & still_winnable(view, task_of, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
         """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
@@ -91,7 +91,7 @@ class SelectState:
         picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
         self.avail = self.avail & ~picked
         self.choosable = choosable(v, self.task_of, self.avail, rem)
-        done = valid & (newly | ~still_winnable(v, self.seg, self.choosable, self.pc_own, self.rem, self.cost))
+        done = valid & (newly | ~still_winnable(v, self.task_of, self.choosable, self.pc_own, self.rem, self.cost))
         self.active = self.active & ~done
         return reward, done
 
@@ -122,7 +122,7 @@ def choosable(view: ObsView, task_of: th.Tensor, avail: th.Tensor, rem: th.Tenso
 
 
 def still_winnable(
-    view: ObsView, seg: th.Tensor, choosable: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor
+    view: ObsView, task_of: th.Tensor, choosable: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor
 ) -> th.Tensor:
     """Whether each uncovered task can still be kept: its choosable candidates can cover the remaining demand, and
     the cost so far plus the cheapest of them stays below the reward (covering needs at least one more pick). A task
@@ -130,15 +130,18 @@ def still_winnable(
     uncovered or unprofitable anyway and the env action is the same as decoding on. Feasibility needs no per-pair
     minimum: Σ_i min(s_ik, d_k) ≥ d_k holds exactly when Σ_i s_ik ≥ d_k.
 
-    :param seg: (B, M, N) candidates of each task
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param choosable: (..., B, N) the choices of :func:`choosable`
     :param pc_own: (B, N) pair cost of each entity for the task it is a candidate of
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) pair costs of the picks so far
     :return: (..., B, M) bool
     """
-    cand = seg & choosable.unsqueeze(-2)  # (..., B, M, N)
-    supply_left = cand.float() @ view.supply  # (..., B, M, K)
-    cheapest = pc_own.unsqueeze(-2).masked_fill(~cand, th.inf).amin(-1)  # (..., B, M); inf without candidates
+    M = rem.shape[-2]
+    seg = task_of.clamp_min(0).expand_as(choosable)
+    cand = choosable & (task_of >= 0)
+    supply_left = segment_sum(cand.unsqueeze(-1) * view.supply, seg, M, vector=True)  # (..., B, M, K)
+    own_cost = pc_own.expand_as(cand).masked_fill(~cand, th.inf)
+    cheapest = own_cost.new_full((*cand.shape[:-1], M), th.inf).scatter_reduce_(-1, seg, own_cost, "amin")  # inf: none
     return (supply_left >= rem - COVER_TOL).all(-1) & (view.reward - cost - cheapest > 0)
 
 

@@ -18,7 +18,7 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from torch.nn import functional as F
 
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
-from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.two_stage_sac.policies import (
     COVER_TOL,
@@ -552,46 +552,50 @@ def select_losses(
 def _select_round_terms(
     policy: TAMPolicy, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, alpha: th.Tensor
 ) -> dict[str, th.Tensor]:
-    """Per-transition terms (flattened over valid (t, b, j)) of one decoding round."""
+    """Per-transition terms (flattened over valid (t, b, j)) of one decoding round.
+
+    Each entity is a candidate of one task, so the per-step distributions over a task's candidates are kept per
+    entity, (T, B, N), and summed into their tasks (:class:`SegmentedCategorical`): no (T, B, M, N) tensor."""
     st = SelectState(view, task_of)
     rank = th.where(st.seg, pick_rank, -1)  # (B, M, N)
     steps = int(rank.max().item()) + 1
     if steps <= 0:
         return {}
-    B, M, N = rank.shape
+    M = rank.shape[1]
+    seg = task_of.clamp_min(0)  # every tensor below is per entity (T, B, N) or per task (T, B, M): no (T, B, M, N)
     t = th.arange(steps, device=rank.device)
-    picked_at = rank.unsqueeze(0) == t.view(-1, 1, 1, 1)  # (T, B, M, N)
-    valid = picked_at.any(-1)  # (T, B, M): task j picks at step t
-    pf = picked_at.float()
-    sup = pf @ view.supply  # (T, B, M, K) supply of the pick
-    pc = (pf * view.pair_cost.transpose(1, 2)).sum(-1)  # (T, B, M) pair cost of the pick
+    tt = t.view(-1, 1, 1)
+    rank_own = rank.max(1).values  # (B, N): step at which the entity's task picked it, −1 if never
+    pf = (rank_own == tt).float()  # (T, B, N): entity picked at step t (by its own task)
+    valid = segment_sum(pf, seg, M) > 0  # (T, B, M): task j picks at step t
+    sup = segment_sum(pf.unsqueeze(-1) * view.supply, seg, M, vector=True)  # (T, B, M, K) supply of the pick
+    pc = segment_sum(pf * st.pc_own, seg, M)  # (T, B, M) pair cost of the pick
     sup_cum, pc_cum, n_cum = sup.cumsum(0), pc.cumsum(0), valid.float().cumsum(0)
     rem = (view.demand - (sup_cum - sup)).clamp_min(0.0)  # before the pick
     rem_after = (view.demand - sup_cum).clamp_min(0.0)
-    rank_own = rank.max(1).values  # (B, N): step at which the entity's task picked it, −1 if never
-    cand = st.seg.any(1)
-    tt = t.view(-1, 1, 1)
+    cand = task_of >= 0
     avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
     avail_after = cand & ((rank_own < 0) | (rank_own > tt))
     choices = choosable(view, task_of, avail, rem)
     choices_after = choosable(view, task_of, avail_after, rem_after)
-    mask = st.seg & choices.unsqueeze(2) & valid.unsqueeze(-1)
+    mask = choices & cand & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
     newly = valid & (rem_after <= COVER_TOL).all(-1)
-    done = valid & (newly | ~still_winnable(view, st.seg, choices_after, st.pc_own, rem_after, pc_cum))
+    done = valid & (newly | ~still_winnable(view, task_of, choices_after, st.pc_own, rem_after, pc_cum))
     reward = valid.float() * (-pc + view.reward * newly.float())
 
     task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())
     logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, task_of)
-    dist = MaskedCategorical(logits.unsqueeze(2).expand(steps, B, M, N), mask)
-    qs = [q.unsqueeze(2) for q in policy.select_critic(policy.select_critic.embed(view), task_state, dyn, task_of)]
+    dist = SegmentedCategorical(logits, mask, seg, M)
+    qs = policy.select_critic(policy.select_critic.embed(view), task_state, dyn, task_of)  # (T, B, N) each
     with th.no_grad():
         d_target = policy.select_critic_target.embed(view)
-        q_targ = th.stack(policy.select_critic_target(d_target, task_state, dyn, task_of), 0).min(0).values.unsqueeze(2)
-        v = (dist.probs * (q_targ - alpha * dist.log_probs)).sum(-1)  # V(s_t), (T, B, M)
+        q_targ = th.stack(policy.select_critic_target(d_target, task_state, dyn, task_of), 0).min(0).values
+        v = dist.expect(q_targ - alpha * dist.log_probs)  # V(s_t), (T, B, M)
         v_next = th.cat([v[1:], th.zeros_like(v[:1])], 0)
     min_q = th.stack(qs, 0).min(0).values.detach()
-    actor = (dist.probs * (alpha * dist.log_probs - min_q)).sum(-1)
-    q_sa = th.stack([(pf * q).sum(-1) for q in qs], dim=-1)  # (T, B, M, n_critics)
+    actor = dist.expect(alpha * dist.log_probs - min_q)
+    q_sa = th.stack([segment_sum(pf * q, seg, M) for q in qs], dim=-1)  # (T, B, M, n_critics)
+    n_choices = segment_sum(mask.float(), seg, M)
     return {
         "reward": reward[valid],
         "done": done[valid].float(),
@@ -599,5 +603,5 @@ def _select_round_terms(
         "q_sa": q_sa[valid],
         "actor": actor[valid],
         "entropy": dist.entropy()[valid],
-        "log_choices": th.log(mask.sum(-1).float().clamp_min(1))[valid],
+        "log_choices": th.log(n_choices.clamp_min(1))[valid],
     }
