@@ -102,3 +102,29 @@ def test_almighty_figure(tmp_path):
     assert png.stat().st_size > 0
     rows = (tmp_path / "almighty.csv").read_text().strip().splitlines()
     assert rows[0] == "variant,seed,step,return" and len(rows) == 1 + len(VARIANTS) * 4  # steps 0, 10, 20, 30
+
+
+def test_goal_lines_from_hand_written_cells(tmp_path):
+    run = TableRun("MT", 1, "smoke", tmp_path, progress=False)
+    run.folder.mkdir(parents=True)
+    cells = {
+        ("Ours", "train"): "120",
+        ("GA", "train"): "100",
+        ("PSO", "train"): "90",
+        ("SOS", "train"): "-5",
+        ("Greedy", "train"): "150",
+        ("W/o Pre (sequence)", "train"): "80",
+        ("Ours", "zero-shot (entity)"): "45",
+        ("Ours", "from scratch (entity)"): "50",
+        ("Ours", "zero-shot (task)"): "-30",
+        ("Ours", "from scratch (task)"): "-20",
+    }
+    for (method, row), value in cells.items():
+        run._record(method, row, 0, value, 0.0)
+    text = run.write_table().read_text()
+    assert "Ours / best planner (GA) on the training env: 1.200 (goal ≥ 1.1)" in text
+    assert "Ours / Greedy on the training env: 0.800 (goal ≥ 1)" in text
+    assert "Ours − W/o Pre (sequence) on the training env: +40.0 (goal > 0)" in text
+    assert "W/o Pre (random)" not in text.split("Goals")[1]  # no cell, no line
+    assert "Ours zero-shot / from scratch on the entity shift: 0.900 (goal ≥ 0.8)" in text
+    assert "on the task shift: n/a (reference -20.0 ≤ 0; difference -10.0)" in text

@@ -409,7 +409,8 @@ class TableRun:
             return lines
 
         def ratio(a: float, b: float) -> str:
-            return f"{a / b:.3f}" if b > 0 else "n/a (reference ≤ 0)"
+            # A ratio compares returns only when the reference is positive (MT's returns are negative costs).
+            return f"{a / b:.3f}" if b > 0 else f"n/a (reference {b:.1f} ≤ 0; difference {a - b:+.1f})"
 
         planners = {m: mean[("train", m)] for m in ("GA", "PSO", "SOS") if ("train", m) in mean}
         if planners:
