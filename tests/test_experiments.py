@@ -13,7 +13,7 @@ import pytest
 
 from sb3_taskalloc.experiments.table import ENVS, METHODS, ROWS, TableRun
 
-CELL = re.compile(r"^(-?\d+(\.\d+)? ± \d+(\.\d+)?|n/a \((size|static|scratch)\))$")
+CELL = re.compile(r"^(-?\d+(\.\d+)?( ± \d+(\.\d+)?)?|n/a \((size|static|scratch)\))$")  # one seed: no spread
 
 
 def run_smoke(args: tuple[str, str]) -> str:

@@ -361,14 +361,16 @@ class TableRun:
                     if numbers:
                         mean, std = float(np.mean(numbers)), float(np.std(numbers))
                         writer.writerow([row, name, f"{mean:.4f}", f"{std:.4f}", len(numbers)])
-                        summary[(row, name)] = f"{mean:.1f} ± {std:.1f}"
+                        summary[(row, name)] = f"{mean:.1f} ± {std:.1f}" if len(numbers) > 1 else f"{mean:.1f}"
                     elif values:
                         key = values[0].split(":", 1)[1]
                         notes.add(key)
                         writer.writerow([row, name, "n/a", key, 0])
                         summary[(row, name)] = f"n/a ({key})"
         lines = [
-            f"# {self.env}: return, mean ± std over {self.seeds} seeds (budget `{self.budget_name}`)",
+            f"# {self.env}: return, mean ± std over {self.seeds} seeds (budget `{self.budget_name}`)"
+            if self.seeds > 1
+            else f"# {self.env}: return of one seed (budget `{self.budget_name}`)",
             "",
             f"Command: `python -m sb3_taskalloc.experiments table --env {self.env} --seeds {self.seeds} --budget "
             f"{self.budget_name}`. Budget: {self.budget}.",
