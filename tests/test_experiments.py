@@ -127,4 +127,6 @@ def test_goal_lines_from_hand_written_cells(tmp_path):
     assert "Ours − W/o Pre (sequence) on the training env: +40.0 (goal > 0)" in text
     assert "W/o Pre (random)" not in text.split("Goals")[1]  # no cell, no line
     assert "Ours zero-shot / from scratch on the entity shift: 0.900 (goal ≥ 0.8)" in text
-    assert "on the task shift: n/a (reference -20.0 ≤ 0; difference -10.0)" in text
+    assert "on the task shift: 0.667 (negative returns: reference cost / Ours' cost)" in text
+    run._record("Greedy", "train", 0, "-10", 0.0)  # a later record of a cell replaces the earlier one
+    assert "Ours / Greedy on the training env: n/a (signs differ: difference +130.0)" in run.write_table().read_text()

@@ -385,7 +385,7 @@ class TableRun:
         lines += ["", *[f"- {FOOTNOTES[k]}" for k in sorted(notes - {"preset"})]]
         goals = self.goals()
         if goals:
-            lines += ["", "Goals (ratios of the means above):", "", *[f"- {g}" for g in goals]]
+            lines += ["", "Goals (ratios of the means above; higher is better):", "", *[f"- {g}" for g in goals]]
         path = self.folder / "table.md"
         path.write_text("\n".join(lines) + "\n")
         return path
@@ -411,8 +411,13 @@ class TableRun:
             return lines
 
         def ratio(a: float, b: float) -> str:
-            # A ratio compares returns only when the reference is positive (MT's returns are negative costs).
-            return f"{a / b:.3f}" if b > 0 else f"n/a (reference {b:.1f} ≤ 0; difference {a - b:+.1f})"
+            """Ours a against the reference b, higher is better: a / b for positive returns; for negative returns
+            (MT's are net costs) the reference's cost over Ours' cost, b / a; with mixed signs only the difference."""
+            if b > 0:
+                return f"{a / b:.3f}"
+            if b < 0 and a < 0:
+                return f"{b / a:.3f} (negative returns: reference cost / Ours' cost)"
+            return f"n/a (signs differ: difference {a - b:+.1f})"
 
         planners = {m: mean[("train", m)] for m in ("GA", "PSO", "SOS") if ("train", m) in mean}
         if planners:
