@@ -254,7 +254,9 @@ class TableRun:
             vec = DummyVecEnv([lambda: Monitor(self.budget.make(env_id), filename=str(log))])
             return MaskablePPO("MultiInputPolicy", vec, seed=seed, **self.budget.ppo)
         env = Monitor(self.budget.make(env_id), filename=str(log))
-        kwargs = {**zoo_hyperparameters(f"TaskAlloc/{self.env}-v0"), **self.budget.sac}  # same settings on the presets
+        train_id = row_env(self.env, "train")
+        assert train_id is not None
+        kwargs = {**zoo_hyperparameters(train_id), **self.budget.sac}  # the training env's settings on the presets too
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 

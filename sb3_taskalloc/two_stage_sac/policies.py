@@ -63,12 +63,13 @@ class SelectState:
         self.covered = th.zeros(B, M, dtype=th.bool, device=task_of.device)
         self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
         self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
-        self.choosable = choosable(view, task_of, self.avail, self.rem)  # (B, N)
+        self.useful = useful_supply(view, task_of, self.rem)  # shared by the choices and the pointer's features
+        self.choosable = choosable(view, task_of, self.avail, self.rem, self.useful)  # (B, N)
         self.active = view.task_mask & still_winnable(view, task_of, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
         """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
-        return select_features(self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick)
+        return select_features(self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick, self.useful)
 
     def choice_mask(self) -> th.Tensor:
         """(B, M, N) entities task j may pick now."""
@@ -90,7 +91,8 @@ class SelectState:
         self.covered = self.covered | newly
         picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
         self.avail = self.avail & ~picked
-        self.choosable = choosable(v, self.task_of, self.avail, rem)
+        self.useful = useful_supply(v, self.task_of, rem)
+        self.choosable = choosable(v, self.task_of, self.avail, rem, self.useful)
         done = valid & (newly | ~still_winnable(v, self.task_of, self.choosable, self.pc_own, self.rem, self.cost))
         self.active = self.active & ~done
         return reward, done
@@ -112,13 +114,20 @@ def useful_supply(view: ObsView, task_of: th.Tensor, rem: th.Tensor) -> tuple[th
     return th.minimum(view.supply, rem_i).sum(-1), rem_i
 
 
-def choosable(view: ObsView, task_of: th.Tensor, avail: th.Tensor, rem: th.Tensor) -> th.Tensor:
+def choosable(
+    view: ObsView,
+    task_of: th.Tensor,
+    avail: th.Tensor,
+    rem: th.Tensor,
+    useful: tuple[th.Tensor, th.Tensor] | None = None,
+) -> th.Tensor:
     """(..., B, N) candidates not picked yet that would cover some of their task's remaining demand: the select-stage
     choices (a candidate that covers nothing could only add cost).
 
     :param avail: (..., B, N) candidates not picked yet; see :func:`useful_supply` for the others
+    :param useful: :func:`useful_supply` of (``task_of``, ``rem``) when already computed
     """
-    return avail & (useful_supply(view, task_of, rem)[0] > COVER_TOL)
+    return avail & ((useful or useful_supply(view, task_of, rem))[0] > COVER_TOL)
 
 
 def still_winnable(
@@ -146,7 +155,13 @@ def still_winnable(
 
 
 def select_features(
-    view: ObsView, task_of: th.Tensor, pc_own: th.Tensor, rem: th.Tensor, cost: th.Tensor, npick: th.Tensor
+    view: ObsView,
+    task_of: th.Tensor,
+    pc_own: th.Tensor,
+    rem: th.Tensor,
+    cost: th.Tensor,
+    npick: th.Tensor,
+    useful: tuple[th.Tensor, th.Tensor] | None = None,
 ) -> tuple[th.Tensor, th.Tensor]:
     """Inputs of the pointer heads for one or many (leading dims) select-stage states.
 
@@ -154,6 +169,7 @@ def select_features(
     :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param pc_own: (B, N) pair cost of each entity for that task
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
+    :param useful: :func:`useful_supply` of (``task_of``, ``rem``) when already computed
     :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 6): coverage of the remaining
         demand, symlog pair cost, symlog margin m (reward − cost so far − pair cost), relu(m), waste share of the supply,
         and whether the entity alone covers the remaining demand (a fixed basis that the pointer weighs linearly)
@@ -171,9 +187,9 @@ def select_features(
         dim=-1,
     )
     idx = task_of.clamp_min(0).expand(*rem.shape[:-3], -1, -1)
-    useful, rem_i = useful_supply(view, task_of, rem)
-    cov = useful / rem_i.sum(-1).clamp_min(1e-6)
-    waste = 1.0 - useful / view.supply.sum(-1).clamp_min(1e-6)
+    useful_i, rem_i = useful or useful_supply(view, task_of, rem)
+    cov = useful_i / rem_i.sum(-1).clamp_min(1e-6)
+    waste = 1.0 - useful_i / view.supply.sum(-1).clamp_min(1e-6)
     margin = th.gather(reward - cost, -1, idx) - pc_own
     m = symlog(margin)
     dyn = th.stack([cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, (cov >= 1 - 1e-6).float()], dim=-1)

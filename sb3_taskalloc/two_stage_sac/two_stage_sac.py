@@ -33,6 +33,7 @@ from sb3_taskalloc.two_stage_sac.policies import (
     choosable,
     select_features,
     still_winnable,
+    useful_supply,
 )
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
@@ -576,14 +577,15 @@ def _select_round_terms(
     cand = task_of >= 0
     avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
     avail_after = cand & ((rank_own < 0) | (rank_own > tt))
-    choices = choosable(view, task_of, avail, rem)
+    useful = useful_supply(view, task_of, rem)  # shared by the choices and the pointer's features
+    choices = choosable(view, task_of, avail, rem, useful)
     choices_after = choosable(view, task_of, avail_after, rem_after)
-    mask = choices & cand & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
+    mask = choices & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
     newly = valid & (rem_after <= COVER_TOL).all(-1)
     done = valid & (newly | ~still_winnable(view, task_of, choices_after, st.pc_own, rem_after, pc_cum))
     reward = valid.float() * (-pc + view.reward * newly.float())
 
-    task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float())
+    task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful)
     logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, task_of)
     dist = SegmentedCategorical(logits, mask, seg, M)
     qs = policy.select_critic(policy.select_critic.embed(view), task_state, dyn, task_of)  # (T, B, N) each
