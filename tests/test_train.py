@@ -21,7 +21,14 @@ from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, preassign_l
 @pytest.fixture(scope="module")
 def model() -> TwoStageSAC:
     m = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=32, batch_size=16, seed=0, policy_kwargs={"hidden_dim": 16}
+        "TAMPolicy",
+        "TaskAlloc/Almighty-v0",
+        learning_starts=32,
+        batch_size=16,
+        seed=0,
+        prior_coef=0.0,  # the paper's losses; the prior term is checked on its own
+        select_prior_coef=0.0,
+        policy_kwargs={"hidden_dim": 16},
     )
     m.learn(40)
     return m
@@ -68,6 +75,27 @@ def test_preassign_critic_target_and_losses(model):
         th.testing.assert_close(p.grad, g, atol=1e-5, rtol=1e-4)
     assert all(p.grad is None for p in model.critic.parameters())
     assert all(p.requires_grad for p in model.critic.parameters())
+    # Prior term (prior_coef β): + β Σ_i KL(π_i ‖ π₀_i), π₀ = the frozen initial actor (the actor moved away first).
+    saved = {k: v.clone() for k, v in model.actor.state_dict().items()}
+    try:
+        with th.no_grad():
+            for param in model.actor.parameters():
+                param.add_(0.3 * th.randn_like(param))
+        pi = model.actor(view)
+        h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))
+        mixed_pi = [cr.mixer((cr.scorer(view) * pi.probs).sum(-1), view) for cr in model.critic.q_networks]
+        prior = model.policy.actor_prior(view)
+        kl = (pi.probs * (th.log(pi.probs.clamp_min(1e-30)) - th.log(prior.probs.clamp_min(1e-30)))).sum((1, 2))
+        assert kl.max() > 1e-3, "the actor has not moved from its initial rule"
+        model.prior_coef = 0.7
+        th.testing.assert_close(
+            actor_loss_of(model, view, alpha), (-alpha * h - th.minimum(*mixed_pi) + 0.7 * kl).mean(), atol=1e-4, rtol=1e-4
+        )
+    finally:
+        model.prior_coef = 0.0
+        model.actor.load_state_dict(saved)
+    pi = model.actor(view)
+    h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))
     # Temperature statistics: mean per-entity entropy and ratio × log(#open tasks).
     free = view.assignable
     has = free.any(1)
@@ -160,6 +188,28 @@ def test_select_losses_match_sequential_closed_form():
     th.testing.assert_close(out["critic_loss"], expected, atol=1e-5, rtol=1e-5)
     th.testing.assert_close(out["actor_loss"], th.stack(actor_terms).mean(), atol=1e-5, rtol=1e-5)
     th.testing.assert_close(out["target_entropy"], 0.5 * th.log(th.tensor([3.0, 2.0])))
+    # Prior term: + β KL(π ‖ π₀) per transition, π₀ from the frozen initial pointer (here moved away from it first).
+    with th.no_grad():
+        for param in policy.selector.parameters():
+            param.add_(th.randn_like(param))
+    out_prior = select_losses(policy, view, cand, rank, alpha, 0.5, prior_coef=2.0)
+    out_plain = select_losses(policy, view, cand, rank, alpha, 0.5)
+    st = SelectState(view, task_of)
+    d, d0 = policy.selector.head.embed_entities(view), policy.selector_prior.head.embed_entities(view)
+    kls = []
+    for pick in [0, 1]:
+        ts, dyn = st.features()
+        mask = st.choice_mask()
+        dist = MaskedCategorical(policy.selector.head(d, ts, dyn, task_of).unsqueeze(1), mask)
+        dist0 = MaskedCategorical(policy.selector_prior.head(d0, ts, dyn, task_of).unsqueeze(1), mask)
+        p, q = dist.probs[0, 0], dist0.probs[0, 0]
+        kls.append((p * (th.log(p.clamp_min(1e-30)) - th.log(q.clamp_min(1e-30)))).sum())
+        st.advance(th.tensor([[pick]]), th.tensor([[True]]))
+    assert max(kl.item() for kl in kls) > 1e-3
+    th.testing.assert_close(
+        out_prior["actor_loss"], out_plain["actor_loss"] + 2.0 * th.stack(kls).mean(), atol=1e-5, rtol=1e-5
+    )
+    th.testing.assert_close(out_prior["critic_loss"], out_plain["critic_loss"])
 
 
 def test_abandoned_when_unprofitable():
@@ -230,6 +280,36 @@ def test_gradient_step_changes_parameters(model):
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
 
 
+def test_actor_warmup_trains_only_the_critics():
+    m = TwoStageSAC(
+        "TAMPolicy",
+        "TaskAlloc/RBF-v0",
+        learning_starts=8,
+        batch_size=8,
+        seed=0,
+        actor_warmup=3,
+        policy_kwargs={"hidden_dim": 16},
+    )
+    m.learn(10)  # fills the buffer; 2 gradient steps, both within the warm-up
+    before = {k: v.clone() for k, v in m.policy.state_dict().items()}
+    alphas = [float(m.log_ent_coef.detach()), float(m.log_select_ent_coef.detach())]  # type: ignore[arg-type]
+    m.train(gradient_steps=1, batch_size=8)  # the last warm-up step
+    after = m.policy.state_dict()
+
+    def changed(state: dict[str, th.Tensor], prefix: str) -> bool:
+        return any(not th.equal(before[k], state[k]) for k in state if k.startswith(prefix))
+
+    assert changed(after, "critic.") and changed(after, "select_critic.")
+    assert not changed(after, "actor.") and not changed(after, "selector.")
+    assert [float(m.log_ent_coef.detach()), float(m.log_select_ent_coef.detach())] == alphas  # type: ignore[arg-type]
+    m.train(gradient_steps=1, batch_size=8)  # past the warm-up: the actors learn
+    assert changed(m.policy.state_dict(), "actor.") and changed(m.policy.state_dict(), "selector.")
+    with pytest.raises(ValueError, match="actor_warmup"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", actor_warmup=-1)
+    with pytest.raises(ValueError, match="select_prior_coef"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_prior_coef=-0.5)
+
+
 def test_segmented_categorical_equals_masked_categorical_over_tasks():
     th.manual_seed(0)
     T, B, N, M = 3, 4, 9, 3
@@ -248,6 +328,16 @@ def test_segmented_categorical_equals_masked_categorical_over_tasks():
     g_seg = th.autograd.grad(seg_dist.entropy().sum(), logits)[0]
     g_full = th.autograd.grad(full.entropy().sum(), logits)[0]
     th.testing.assert_close(g_seg, g_full)
+    # KL to another distribution on the same choices: Σ p (log p − log q), equal in both layouts, 0 against itself.
+    other = th.randn(T, B, N)
+    seg_q = SegmentedCategorical(other, mask, seg, M)
+    full_q = MaskedCategorical(other.unsqueeze(2).expand(T, B, M, N), mask.unsqueeze(2) & own)
+    th.testing.assert_close(seg_dist.kl(seg_q), full.kl(full_q))
+    p, q = full.probs, full_q.probs
+    closed = (p * (th.log(p.clamp_min(1e-30)) - th.log(q.clamp_min(1e-30)))).sum(-1)
+    th.testing.assert_close(full.kl(full_q), closed, atol=1e-5, rtol=1e-5)
+    assert (full.kl(full_q) >= -1e-6).all() and full.kl(full_q).max() > 0.01
+    th.testing.assert_close(seg_dist.kl(seg_dist), th.zeros_like(seg_dist.entropy()))
 
 
 def test_select_losses_match_sequential_decoding_on_many_tasks():

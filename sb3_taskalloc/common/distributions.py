@@ -28,6 +28,10 @@ class MaskedCategorical:
         """(...) entropy −Σ_c p_c log p_c (0 for empty rows)."""
         return -(self.probs * self.log_probs).sum(-1)
 
+    def kl(self, other: MaskedCategorical) -> th.Tensor:
+        """(...) KL(self ‖ other) = Σ_c p_c (log p_c − log q_c) over the allowed choices (0 for empty rows)."""
+        return (self.probs * (self.log_probs - other.log_probs)).sum(-1)
+
     def get_actions(self, deterministic: bool) -> th.Tensor:
         """(...) the most probable index, or one drawn by the Gumbel-max trick (see :func:`masked_pick`)."""
         return masked_pick(self.logits, deterministic)
@@ -88,3 +92,7 @@ class SegmentedCategorical:
     def entropy(self) -> th.Tensor:
         """(..., B, M) entropy of each segment's distribution."""
         return -self.expect(self.log_probs)
+
+    def kl(self, other: SegmentedCategorical) -> th.Tensor:
+        """(..., B, M) KL(self ‖ other) of each segment's distribution (same mask and segments)."""
+        return self.expect(self.log_probs - other.log_probs)

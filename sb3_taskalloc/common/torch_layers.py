@@ -6,7 +6,7 @@ All modules take padded, masked batches and never produce NaN for all-masked row
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch as th
 from torch import nn
@@ -75,6 +75,8 @@ def parse_obs(obs: dict[str, th.Tensor]) -> ObsView:
 
 #: Number of fixed pair features of :func:`pair_basis`.
 PAIR_FEATURES = 5
+#: Index of the symlog pair cost in :func:`pair_basis`.
+PAIR_COST = 0
 
 
 def pair_basis(pair_cost: th.Tensor, cover: th.Tensor, reward: th.Tensor) -> th.Tensor:
@@ -351,7 +353,9 @@ class GlobalMixer(_FlatNet):
 #: Size of the per-step task state of the select stage (remaining demand K + 4 scalars).
 SELECT_TASK_EXTRA = 4
 #: Size of the per-step dynamic entity features of the select stage.
-SELECT_DYN = 6
+SELECT_DYN = 7
+#: Index of the symlog unit cost (pair cost per unit of remaining demand covered) in the select stage's dynamic features.
+UNIT_COST = 6
 
 
 class PointerHead(nn.Module):
@@ -387,6 +391,14 @@ class PointerHead(nn.Module):
 
     def embed_entities(self, view: ObsView) -> th.Tensor:
         return self.entity(view.entity)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        # Models saved before the unit-cost feature have a 6-column read-out: its new column starts at 0.
+        key = prefix + "dyn.weight"
+        weight = state_dict.get(key)
+        if weight is not None and weight.shape[-1] == SELECT_DYN - 1:
+            state_dict[key] = th.cat([weight, weight.new_zeros(*weight.shape[:-1], 1)], dim=-1)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
         """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time

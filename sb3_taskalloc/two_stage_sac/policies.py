@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
+from collections.abc import Mapping
 from typing import Any, Literal, NamedTuple
 
 import torch as th
@@ -14,6 +16,8 @@ from torch import nn
 from sb3_taskalloc.common.distributions import MaskedCategorical, masked_pick, segment_sum
 from sb3_taskalloc.common.torch_layers import (
     NEG,
+    PAIR_COST,
+    UNIT_COST,
     AMIXMixer,
     FlatScorer,
     GlobalMixer,
@@ -27,6 +31,12 @@ from sb3_taskalloc.common.torch_layers import (
 
 #: A task counts as covered (internally) when every remaining demand is at most this (the env's tolerance is larger).
 COVER_TOL = 1e-5
+
+#: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of TwoStageSAC): the pre-assign
+#: actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight on the symlog
+#: unit cost (a task picks the candidate that covers its remaining demand at the lowest cost per unit, the greedy
+#: allocator's rule), and the gain of the last layer of the task embeddings whose dot products add to both scores.
+HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embedding_gain": 0.0}
 
 
 class Decision(NamedTuple):
@@ -170,9 +180,10 @@ def select_features(
     :param pc_own: (B, N) pair cost of each entity for that task
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
     :param useful: :func:`useful_supply` of (``task_of``, ``rem``) when already computed
-    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 6): coverage of the remaining
+    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, 7): coverage of the remaining
         demand, symlog pair cost, symlog margin m (reward − cost so far − pair cost), relu(m), waste share of the supply,
-        and whether the entity alone covers the remaining demand (a fixed basis that the pointer weighs linearly)
+        whether the entity alone covers the remaining demand, and symlog of its unit cost (pair cost per unit of the
+        remaining demand it covers): a fixed basis that the pointer weighs linearly
     """
     demand_sum = view.demand.sum(-1).clamp_min(1e-6)
     reward = view.reward.expand_as(cost)
@@ -192,7 +203,9 @@ def select_features(
     waste = 1.0 - useful_i / view.supply.sum(-1).clamp_min(1e-6)
     margin = th.gather(reward - cost, -1, idx) - pc_own
     m = symlog(margin)
-    dyn = th.stack([cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, (cov >= 1 - 1e-6).float()], dim=-1)
+    unit_cost = symlog(pc_own / useful_i.clamp_min(1e-6))  # the greedy allocator's key: cost per unit of demand covered
+    covers = (cov >= 1 - 1e-6).float()
+    dyn = th.stack([cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, covers, unit_cost], dim=-1)
     return task_state, dyn
 
 
@@ -318,6 +331,9 @@ class TAMPolicy(BasePolicy):
     :param monotonic_mixer: QMIX-style non-negative mixing weights
     :param hyper_bias: state-dependent AMIX bias
     :param n_critics: number of critics (clipped double-Q)
+    :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
+        their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
+        learning then corrects the rules. ``False``: PyTorch's default initialisation (the paper)
     :param activation_fn: activation of the MLPs (paper: ReLU)
     :param optimizer_class: optimizer of every network
     :param optimizer_kwargs: extra optimizer arguments
@@ -326,6 +342,8 @@ class TAMPolicy(BasePolicy):
     actor: PreAssignActor | None
     critic: TwinCritic | None
     critic_target: TwinCritic | None
+    actor_prior: PreAssignActor | None
+    selector_prior: Selector
 
     def __init__(
         self,
@@ -342,6 +360,7 @@ class TAMPolicy(BasePolicy):
         monotonic_mixer: bool = False,
         hyper_bias: bool = True,
         n_critics: int = 2,
+        heuristic_init: bool = True,
         activation_fn: type[nn.Module] = nn.ReLU,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
@@ -370,6 +389,7 @@ class TAMPolicy(BasePolicy):
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
         self.n_critics = n_critics
+        self.heuristic_init = heuristic_init
         self.activation_fn = activation_fn
         self._build(lr_schedule)
 
@@ -431,6 +451,30 @@ class TAMPolicy(BasePolicy):
         self.select_critic_target = SelectCritic(make_heads())
         self.select_critic_target.load_state_dict(self.select_critic.state_dict())
         self.select_critic_target.train(False)
+        if self.heuristic_init:
+            self._init_heuristic()
+        # Frozen copies of the initial actors: the reference π₀ of TwoStageSAC's prior term (implementation detail 12).
+        self.actor_prior = copy.deepcopy(self.actor).requires_grad_(False).train(False) if self.actor is not None else None
+        self.selector_prior = copy.deepcopy(self.selector).requires_grad_(False).train(False)
+        for prior in (self.actor_prior, self.selector_prior):
+            if prior is not None and hasattr(prior, "optimizer"):
+                del prior.optimizer
+
+    @th.no_grad()
+    def _init_heuristic(self) -> None:
+        """Initialise the actors at the cost-greedy rules of :data:`HEURISTIC_INIT` (critics keep the default init)."""
+        gain = HEURISTIC_INIT["embedding_gain"]
+        scorer = self.actor.scorer if self.actor is not None else None
+        if isinstance(scorer, PairScorer) and scorer.pair is not None:
+            scorer.pair.weight.zero_()
+            scorer.pair.weight[0, PAIR_COST] = HEURISTIC_INIT["pair_cost"]
+            scorer.pair.bias.zero_()
+            _scale_last_layer(scorer.encoder.f_g, gain)
+        head = self.selector.head
+        head.dyn.weight.zero_()
+        head.dyn.weight[0, UNIT_COST] = HEURISTIC_INIT["unit_cost"]
+        head.dyn.bias.zero_()
+        _scale_last_layer(head.task, gain)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -447,12 +491,22 @@ class TAMPolicy(BasePolicy):
                 monotonic_mixer=self.monotonic_mixer,
                 hyper_bias=self.hyper_bias,
                 n_critics=self.n_critics,
+                heuristic_init=self.heuristic_init,
                 activation_fn=self.activation_fn,
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
             )
         )
         return data
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any:
+        """As :meth:`torch.nn.Module.load_state_dict`; a state saved without the frozen initial actors (older models)
+        takes its actors as their reference."""
+        state = dict(state_dict)
+        for prior, source in (("actor_prior.", "actor."), ("selector_prior.", "selector.")):
+            if not any(k.startswith(prior) for k in state):
+                state.update({prior + k[len(source) :]: v for k, v in state_dict.items() if k.startswith(source)})
+        return super().load_state_dict(state, strict, assign)
 
     def set_training_mode(self, mode: bool) -> None:
         """Train/eval mode of the online networks (targets stay in eval mode); a no-op when unchanged, since SB3's
@@ -540,6 +594,13 @@ class TAMPolicy(BasePolicy):
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)
+
+
+def _scale_last_layer(net: nn.Sequential, gain: float) -> None:
+    last = net[-1]
+    assert isinstance(last, nn.Linear)
+    last.weight.mul_(gain)
+    last.bias.mul_(gain)
 
 
 def env_action_of(rank: th.Tensor, kept: th.Tensor) -> th.Tensor:

@@ -81,13 +81,27 @@ class TwoStageSAC(OffPolicyAlgorithm):
     6. Pointer: logits u_i = d_i·e_j^t/√d + w·x_i^t, a dot-product pointer instead of the paper's additive
        vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step: ~10× cheaper to train);
        e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
-       T^{t+1} = T^t + f^a(u^t)); x_i^t = a fixed basis of the entity's coverage of that demand, pair cost, margin
-       and waste, weighed linearly. The select critics add a per-task baseline b(e_j^t). All tasks of all batch rows
-       decode in parallel.
+       T^{t+1} = T^t + f^a(u^t)); x_i^t = a fixed basis of the entity's coverage of that demand, pair cost, margin,
+       waste and unit cost (pair cost per unit of remaining demand covered), weighed linearly. The select critics
+       add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
     7. Scores are divided by √d in the actor (paper) and not in the critics (B20). Inputs are symlog-normalised.
     8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks.
     9. Ablations are policy kwargs: ``preassign=False, task_order="sequential"|"random"`` (W/o Pre),
        ``encoder="mlp"`` (W/o TAM), ``mixer="global"`` (W/o AMIX). Abandoned picks return to the pool (B15 fixed).
+    10. Initialisation (``TAMPolicy(heuristic_init=True)``, not in the paper): the actors start at cost-greedy rules.
+       The pre-assign read-out weighs only the symlog pair cost (each entity leans to its cheapest task), the
+       pointer's only the symlog unit cost (each task picks the candidate that covers its remaining demand at the
+       lowest cost per unit, the rule of :class:`~sb3_taskalloc.baselines.GreedyAllocator`), and the last layer of
+       both task embeddings starts at 0, so the dot-product terms start at 0 and grow by learning. Critics keep
+       PyTorch's initialisation. ``heuristic_init=False`` is the paper's random start.
+    11. Critic warm-up (``actor_warmup``): the first gradient steps train only the critics, so the actors start
+       learning from critics that have seen the values of their initial rules.
+    12. Prior term (``prior_coef`` β, ``select_prior_coef`` β_s; not in the paper): each actor loss adds
+       β·KL(π ‖ π₀), π₀ = the actor at initialisation (frozen copies ``actor_prior``/``selector_prior`` in the
+       policy), as a behaviour prior (the regularised optimum is π ∝ π₀·exp(Q/β) where the entropy term is small).
+       The critics' targets keep the entropy bonus of details 2 and 5. With ``heuristic_init`` the actors then
+       leave the cost-greedy rules only where the critics' values outweigh the KL: without it, the noisy early
+       critics undo the rules within a few hundred gradient steps (README, RBF).
 
     :param policy: ``"TAMPolicy"`` or a :class:`TAMPolicy` subclass
     :param env: a ``TaskAlloc`` environment (or its id)
@@ -104,6 +118,12 @@ class TwoStageSAC(OffPolicyAlgorithm):
     :param ent_coef: stage-1 entropy coefficient α: ``"auto"``, ``"auto_0.1"`` (auto with initial value) or a float
     :param select_ent_coef: select-stage entropy coefficient α_s (same forms)
     :param target_entropy_ratio: H̄* as a fraction of the maximum per-entity (or per-pick) entropy
+    :param actor_warmup: gradient steps during which only the critics learn: the pre-assign actor, the pointer and
+        both temperatures keep their initial values (with ``heuristic_init``, the critics first learn the values of the
+        cost-greedy rules before the actors follow them)
+    :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ = the actor at initialisation (a
+        frozen copy in the policy): learning departs from the initial rule only where the critics' values outweigh it
+    :param select_prior_coef: the same weight β_s for the pointer (select stage)
     :param target_update_interval: target network update interval (gradient steps)
     :param select_batch_size: rows of each minibatch used by the select stage (each row holds up to M × team-size
         transitions, so a few rows suffice; the decoding loop is the costly part of a gradient step)
@@ -143,6 +163,9 @@ class TwoStageSAC(OffPolicyAlgorithm):
         ent_coef: str | float = "auto",
         select_ent_coef: str | float = "auto",
         target_entropy_ratio: float = 0.3,
+        actor_warmup: int = 0,
+        prior_coef: float = 10.0,
+        select_prior_coef: float = 3.0,
         target_update_interval: int = 1,
         select_batch_size: int = 16,
         stats_window_size: int = 100,
@@ -181,6 +204,14 @@ class TwoStageSAC(OffPolicyAlgorithm):
         self.ent_coef = ent_coef
         self.select_ent_coef = select_ent_coef
         self.target_entropy_ratio = target_entropy_ratio
+        if actor_warmup < 0:
+            raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
+        self.actor_warmup = actor_warmup
+        for name, value in (("prior_coef", prior_coef), ("select_prior_coef", select_prior_coef)):
+            if not value >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {value!r}")
+        self.prior_coef = float(prior_coef)
+        self.select_prior_coef = float(select_prior_coef)
         self.target_update_interval = target_update_interval
         self.select_batch_size = select_batch_size
         if _init_setup_model:
@@ -257,11 +288,12 @@ class TwoStageSAC(OffPolicyAlgorithm):
         for gradient_step in range(gradient_steps):
             data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
             view = self.policy.parse(data.observations)
+            actors_learn = self._n_updates + gradient_step >= self.actor_warmup
             if self.actor is not None:
                 next_view = self.policy.parse(data.next_observations)
-                for key, value in self._preassign_step(view, next_view, data).items():
+                for key, value in self._preassign_step(view, next_view, data, actors_learn).items():
                     logs.setdefault(key, []).append(value)
-            for key, value in self._select_step(view, data).items():
+            for key, value in self._select_step(view, data, actors_learn).items():
                 logs.setdefault(key, []).append(value)
             if gradient_step % self.target_update_interval == 0:
                 if self.critic is not None and self.critic_target is not None:
@@ -282,10 +314,16 @@ class TwoStageSAC(OffPolicyAlgorithm):
         _optimize(optimizer, loss)
         return loss.item()
 
-    def _preassign_step(self, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples) -> dict[str, float]:
+    def _preassign_step(
+        self, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples, actor_learns: bool = True
+    ) -> dict[str, float]:
         assert self.actor is not None and self.critic is not None and self.critic_target is not None
         losses = preassign_losses(self, view, next_view, data)
         logs = {"ent_coef": losses["ent_coef"].item()}
+        if not actor_learns:  # critic warm-up (``actor_warmup``): the actor and α keep their initial values
+            _optimize(self.critic.optimizer, losses["critic_loss"])
+            logs["critic_loss"] = losses["critic_loss"].item()
+            return logs
         ent_loss = self._step_ent_coef(
             self.log_ent_coef, self.ent_coef_optimizer, losses["mean_entropy"], losses["target_entropy"]
         )
@@ -302,13 +340,25 @@ class TwoStageSAC(OffPolicyAlgorithm):
         logs.update(critic_loss=losses["critic_loss"].item(), actor_loss=actor_loss.item())
         return logs
 
-    def _select_step(self, view: ObsView, data: TwoStageReplayBufferSamples) -> dict[str, float]:
+    def _select_step(self, view: ObsView, data: TwoStageReplayBufferSamples, actor_learns: bool = True) -> dict[str, float]:
         alpha = self._alpha(self.log_select_ent_coef, self.select_ent_coef_tensor)
         rows = slice(0, self.select_batch_size)
         sub = ObsView(*(x[rows] for x in view))
-        losses = select_losses(self.policy, sub, data.candidates[rows], data.pick_rank[rows], alpha, self.target_entropy_ratio)
+        losses = select_losses(
+            self.policy,
+            sub,
+            data.candidates[rows],
+            data.pick_rank[rows],
+            alpha,
+            self.target_entropy_ratio,
+            self.select_prior_coef,
+        )
         logs = {"select_ent_coef": alpha.item()}
         if losses["n"] == 0:
+            return logs
+        if not actor_learns:
+            _optimize(self.select_critic.optimizer, losses["critic_loss"])
+            logs["select_critic_loss"] = losses["critic_loss"].item()
             return logs
         ent_loss = self._step_ent_coef(
             self.log_select_ent_coef, self.select_ent_coef_optimizer, losses["entropy"], losses["target_entropy"]
@@ -488,7 +538,8 @@ def actor_loss_of(
     dist: MaskedCategorical | None = None,
     contexts: list[CriticContext] | None = None,
 ) -> th.Tensor:
-    """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)).
+    """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
+    (+ β Σ_i KL(π_i ‖ π₀_i) with ``prior_coef`` β > 0).
 
     The critics are frozen while it is built, so autograd records only the path through π (the per-entity scores
     and the mixer's hyper-weights are constants of the actor loss): no backward pass through the critic networks.
@@ -502,7 +553,12 @@ def actor_loss_of(
     with frozen(model.critic):
         contexts = model.critic.contexts(view) if contexts is None else [ctx.detach() for ctx in contexts]
         q_pi = th.stack(model.critic.mix(contexts, dist.probs), dim=0).min(0).values
-    return (-alpha * dist.entropy().sum(1) - q_pi).mean()
+    loss = -alpha * dist.entropy().sum(1) - q_pi
+    if model.prior_coef > 0 and model.policy.actor_prior is not None:
+        with th.no_grad():
+            prior = model.policy.actor_prior(view)
+        loss = loss + model.prior_coef * dist.kl(prior).sum(1)
+    return loss.mean()
 
 
 def select_rounds(policy: TAMPolicy, candidates: th.Tensor) -> list[th.Tensor]:
@@ -522,6 +578,7 @@ def select_losses(
     pick_rank: th.Tensor,
     alpha: th.Tensor,
     target_entropy_ratio: float,
+    prior_coef: float = 0.0,
 ) -> dict[str, Any]:
     """Discrete-SAC losses of the select stage on the stored pick orders (implementation detail 5).
 
@@ -534,7 +591,7 @@ def select_losses(
         n = len(rounds)
         view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
         pick_rank = pick_rank.repeat(n, 1, 1)
-    cat = _select_round_terms(policy, view, th.cat(rounds, 0), pick_rank, alpha)
+    cat = _select_round_terms(policy, view, th.cat(rounds, 0), pick_rank, alpha, prior_coef)
     if not cat:
         return {"n": 0}
     target = (cat["reward"] + (1 - cat["done"]) * cat["v_next"]).detach()  # γ = 1 within a task
@@ -551,7 +608,7 @@ def select_losses(
 
 
 def _select_round_terms(
-    policy: TAMPolicy, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, alpha: th.Tensor
+    policy: TAMPolicy, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, alpha: th.Tensor, prior_coef: float = 0.0
 ) -> dict[str, th.Tensor]:
     """Per-transition terms (flattened over valid (t, b, j)) of one decoding round.
 
@@ -596,6 +653,11 @@ def _select_round_terms(
         v_next = th.cat([v[1:], th.zeros_like(v[:1])], 0)
     min_q = th.stack(qs, 0).min(0).values.detach()
     actor = dist.expect(alpha * dist.log_probs - min_q)
+    if prior_coef > 0:
+        with th.no_grad():
+            head = policy.selector_prior.head
+            prior = SegmentedCategorical(head(head.embed_entities(view), task_state, dyn, task_of), mask, seg, M)
+        actor = actor + prior_coef * dist.kl(prior)
     q_sa = th.stack([segment_sum(pf * q, seg, M) for q in qs], dim=-1)  # (T, B, M, n_critics)
     n_choices = segment_sum(mask.float(), seg, M)
     return {
