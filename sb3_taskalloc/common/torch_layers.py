@@ -363,7 +363,7 @@ class PointerHead(nn.Module):
 
     u_i = d_i·e_j^t / √d + w·x_i^t (+ b(e_j^t) for a critic), where e_j^t encodes task j's state after t picks
     (remaining demand, reward, cost so far, number of picks), d_i the entity and x_i^t a fixed basis of its dynamic
-    pair features with task j (coverage of the remaining demand, pair cost, margin, waste), weighed linearly.
+    pair features with task j (coverage of the remaining demand, pair cost, margin, waste, unit cost), weighed linearly.
     This dot-product pointer replaces the paper's additive vᵀ tanh(W1 e + W2 d): it needs no (batch × entities ×
     hidden) tensor per decoding step, which makes training an order of magnitude cheaper on CPUs.
 

@@ -78,7 +78,7 @@ class SelectState:
         self.active = view.task_mask & still_winnable(view, task_of, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
-        """Task states (B, M, K + 4) and entity dynamic features (B, N, 4) for the pointer heads."""
+        """Task states (B, M, K + 4) and entity dynamic features (B, N, SELECT_DYN) for the pointer heads."""
         return select_features(self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick, self.useful)
 
     def choice_mask(self) -> th.Tensor:
