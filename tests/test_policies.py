@@ -202,3 +202,45 @@ def test_heuristic_init_beats_default_init_untrained():
             total += float(reward)
         returns[heuristic] = total
     assert returns[True] > returns[False] + 10.0, returns
+
+
+def test_frozen_priors_skip_only_zero_dot_products():
+    """The rule-initialised frozen priors skip their dot products (task embeddings identically 0) and score exactly as
+    the full computation; priors with non-zero task embeddings (an older save, or ``heuristic_init=False``) do not."""
+    th.manual_seed(0)
+    env = gym.make("TaskAlloc/RBF-v0")
+    policy = make_policy(env)
+    assert policy.actor_prior is not None
+    scorer, head = policy.actor_prior.scorer, policy.selector_prior.head
+    assert scorer.skip_dot and head.skip_dot
+    assert not policy.actor.scorer.skip_dot and not policy.selector.head.skip_dot  # trained copies always compute
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 8, seed=3)))
+    task_of = th.where(view.assignable, policy.actor_prior(view).get_actions(True), -1)
+    task_state, dyn = SelectState(view, task_of).features()
+    fast = (scorer(view), head(head.embed_entities(view), task_state, dyn, task_of))
+    assert head.embed_entities(view).shape[-1] == 0  # the entity MLP is not run
+    scorer.skip_dot = head.skip_dot = False
+    full = (scorer(view), head(head.embed_entities(view), task_state, dyn, task_of))
+    for a, b in zip(fast, full, strict=True):
+        th.testing.assert_close(a, b, rtol=0, atol=0)
+    # A state whose priors have non-zero task embeddings turns the shortcut off when loaded.
+    state = {k: v for k, v in policy.state_dict().items() if not k.startswith(("actor_prior.", "selector_prior."))}
+    state["actor.scorer.encoder.f_g.2.bias"] = th.ones_like(state["actor.scorer.encoder.f_g.2.bias"])
+    state["selector.head.task.2.bias"] = th.ones_like(state["selector.head.task.2.bias"])
+    policy.load_state_dict(state)
+    assert not policy.actor_prior.scorer.skip_dot and not policy.selector_prior.head.skip_dot
+    assert not make_policy(env, heuristic_init=False).selector_prior.head.skip_dot
+
+
+def test_optimizers_default_to_fused_adam():
+    """Adam runs fused unless ``optimizer_kwargs`` picks an implementation or another optimizer is chosen."""
+    env = gym.make("TaskAlloc/Almighty-v0")
+    policy = make_policy(env)
+    assert policy.actor is not None and policy.critic is not None
+    for module in (policy.actor, policy.critic, policy.selector, policy.select_critic):
+        assert module.optimizer.defaults["fused"] is True
+    chosen = make_policy(env, optimizer_kwargs={"foreach": True})
+    assert chosen.selector.optimizer.defaults["foreach"] is True and not chosen.selector.optimizer.defaults["fused"]
+    assert "fused" not in chosen.optimizer_kwargs  # the user's kwargs are saved unchanged
+    sgd = make_policy(env, optimizer_class=th.optim.SGD)
+    assert isinstance(sgd.selector.optimizer, th.optim.SGD)

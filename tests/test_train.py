@@ -15,7 +15,7 @@ from sb3_taskalloc.baselines import GreedyAllocator
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical
 from sb3_taskalloc.common.torch_layers import AMIXMixer, ObsView, parse_obs
 from sb3_taskalloc.two_stage_sac.policies import SelectState
-from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, preassign_losses, select_losses
+from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, foreach_polyak_update, preassign_losses, select_losses
 
 
 @pytest.fixture(scope="module")
@@ -394,3 +394,20 @@ def test_select_losses_match_sequential_decoding_on_many_tasks():
     th.testing.assert_close(out["actor_loss"], stk["actor"][valid].mean(), atol=1e-5, rtol=1e-5)
     th.testing.assert_close(out["entropy"], stk["h"][valid], atol=1e-5, rtol=1e-5)
     th.testing.assert_close(out["target_entropy"], 0.5 * th.log(stk["n"][valid]), atol=1e-6, rtol=1e-6)
+
+
+def test_foreach_polyak_update_equals_sb3():
+    """The multi-tensor soft update gives exactly SB3's ``polyak_update`` and checks the parameter counts."""
+    from stable_baselines3.common.utils import polyak_update
+
+    th.manual_seed(0)
+    params = [th.randn(3, 4), th.randn(7)]
+    ours = [th.randn(3, 4), th.randn(7)]
+    theirs = [t.clone() for t in ours]
+    for _ in range(3):
+        foreach_polyak_update(params, ours, 0.005)
+        polyak_update(params, theirs, 0.005)
+    for a, b in zip(ours, theirs, strict=True):
+        th.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="target parameters"):
+        foreach_polyak_update(params, ours[:1], 0.005)

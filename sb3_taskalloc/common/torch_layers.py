@@ -20,6 +20,12 @@ def symlog(x: th.Tensor) -> th.Tensor:
     return th.sign(x) * th.log1p(th.abs(x))
 
 
+def zero_output(net: nn.Sequential) -> bool:
+    """Whether the last linear layer of ``net`` is identically zero, so that ``net`` outputs 0 for every input."""
+    last = net[-1]
+    return isinstance(last, nn.Linear) and not bool(last.weight.any()) and (last.bias is None or not bool(last.bias.any()))
+
+
 def mlp(in_dim: int, hidden: int, out_dim: int, activation_fn: type[nn.Module] = nn.ReLU, n_hidden: int = 1) -> nn.Sequential:
     """``in → hidden (→ hidden …) → out`` with ``activation_fn`` between layers (the paper's 2-layer MLPs by default)."""
     layers: list[nn.Module] = [nn.Linear(in_dim, hidden), activation_fn()]
@@ -179,8 +185,20 @@ class PairScorer(nn.Module):
         self.encoder = TAMEncoder(entity_dim, task_dim, hidden_dim, n_attention_layers, activation_fn)
         self.scale = scale
         self.pair = nn.Linear(PAIR_FEATURES, 1) if pair_features else None
+        #: Skip the dot product (set by :meth:`freeze` when the task embeddings are identically 0).
+        self.skip_dot = False
+
+    def freeze(self) -> None:
+        """Mark the weights as constant: with an all-zero output layer of the task embeddings (a rule-initialised prior,
+        see ``TAMPolicy(heuristic_init=True)``) h·g ≡ 0 and the scores are the pair term alone, computed without the
+        encoder. Call again after the weights change."""
+        self.skip_dot = not self.encoder.task_blocks and zero_output(self.encoder.f_g)
 
     def forward(self, view: ObsView) -> th.Tensor:
+        if self.skip_dot:
+            if self.pair is None:
+                return view.pair_cost.new_zeros(view.pair_cost.shape)
+            return self.pair(view.pair).squeeze(-1)
         h, g = self.encoder(view)
         scores = h @ g.transpose(1, 2) / self.scale
         if self.pair is not None:
@@ -298,9 +316,9 @@ class AMIXMixer(nn.Module):
         mask = view.assignable
         x = view.entity * mask.unsqueeze(-1)
         k, q, v = self.k(x), self.q(x), self.v(x)
-        # 1/√d on the (B, N, d) keys rather than the (B, N, N) scores; an additive key mask rather than masked_fill.
-        scores = (k / math.sqrt(self.attention_dim)) @ q.transpose(1, 2)
-        att = th.softmax(scores + (~mask).unsqueeze(1).float() * NEG, dim=-1)
+        # K Qᵀ/√d plus the additive key mask in one batched GEMM (no separate (B, N, N) pass for the scale or the mask).
+        key_bias = ((~mask).float() * NEG).unsqueeze(1)  # (B, 1, N)
+        att = th.softmax(th.baddbmm(key_bias, k, q.transpose(1, 2), alpha=1 / math.sqrt(self.attention_dim)), dim=-1)
         bias = self.const_bias.expand(mask.shape[0], -1)
         if self.bias is not None:
             pres = view.present.unsqueeze(-1).float()
@@ -388,8 +406,19 @@ class PointerHead(nn.Module):
         self.dyn = nn.Linear(SELECT_DYN, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
         self.value = nn.Linear(hidden_dim, 1) if state_value else None
         self.scale = math.sqrt(hidden_dim)
+        #: Skip the dot product (set by :meth:`freeze` when the task embeddings are identically 0).
+        self.skip_dot = False
+
+    def freeze(self) -> None:
+        """Mark the weights as constant: with an all-zero output layer of the task embeddings (a rule-initialised prior)
+        and no baseline, d_i·e_j ≡ 0 and the scores are the linear read-out of the dynamic features alone, computed
+        without the entity and task MLPs. Call again after the weights change."""
+        self.skip_dot = self.value is None and zero_output(self.task)
 
     def embed_entities(self, view: ObsView) -> th.Tensor:
+        """(B, N, H) entity embeddings d_i (an empty (B, N, 0) tensor when :attr:`skip_dot` makes them unused)."""
+        if self.skip_dot:
+            return view.entity.new_zeros(*view.entity.shape[:-1], 0)
         return self.entity(view.entity)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
@@ -404,6 +433,8 @@ class PointerHead(nn.Module):
         """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
         dims); :param dyn: (..., B, N, SELECT_DYN); :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
+        if self.skip_dot:
+            return self.dyn(dyn).squeeze(-1)
         e = self.task(task_state)
         lead = e.shape[:-3]
         B, M, H = e.shape[-3:]

@@ -428,26 +428,25 @@ class TAMPolicy(BasePolicy):
 
     def _build(self, lr_schedule: Schedule) -> None:
         _, _, Fe, _, K = self.dims
-        opt = self.optimizer_kwargs
         lr = lr_schedule(1)
         if self.preassign:
             self.actor = PreAssignActor(self._scorer(scale=math.sqrt(self.hidden_dim)))
-            self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+            self.actor.optimizer = self._make_optimizer(self.actor, lr)
             self.critic = self._make_critic()
-            self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+            self.critic.optimizer = self._make_optimizer(self.critic, lr)
             self.critic_target = self._make_critic()
             self.critic_target.load_state_dict(self.critic.state_dict())
             self.critic_target.train(False)
         else:
             self.actor = self.critic = self.critic_target = None
         self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn))
-        self.selector.optimizer = self.optimizer_class(self.selector.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+        self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
             return [PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True) for _ in range(self.n_critics)]
 
         self.select_critic = SelectCritic(make_heads())
-        self.select_critic.optimizer = self.optimizer_class(self.select_critic.parameters(), lr=lr, **opt)  # type: ignore[call-arg]
+        self.select_critic.optimizer = self._make_optimizer(self.select_critic, lr)
         self.select_critic_target = SelectCritic(make_heads())
         self.select_critic_target.load_state_dict(self.select_critic.state_dict())
         self.select_critic_target.train(False)
@@ -459,6 +458,22 @@ class TAMPolicy(BasePolicy):
         for prior in (self.actor_prior, self.selector_prior):
             if prior is not None and hasattr(prior, "optimizer"):
                 del prior.optimizer
+        self._freeze_priors()
+
+    def _freeze_priors(self) -> None:
+        """Let the frozen initial actors skip the dot products that their weights make identically 0."""
+        if self.actor_prior is not None and isinstance(self.actor_prior.scorer, PairScorer):
+            self.actor_prior.scorer.freeze()
+        self.selector_prior.head.freeze()
+
+    def _make_optimizer(self, module: nn.Module, lr: float) -> th.optim.Optimizer:
+        """``optimizer_class(module.parameters(), lr, **optimizer_kwargs)``; Adam and AdamW default to their fused
+        implementation (one kernel for all parameters: about 6× faster per step on a CPU thread than the per-tensor
+        loop) unless ``optimizer_kwargs`` chooses an implementation."""
+        kwargs = dict(self.optimizer_kwargs)
+        if self.optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(kwargs):
+            kwargs["fused"] = True
+        return self.optimizer_class(module.parameters(), lr=lr, **kwargs)  # type: ignore[call-arg]
 
     @th.no_grad()
     def _init_heuristic(self) -> None:
@@ -506,7 +521,9 @@ class TAMPolicy(BasePolicy):
         for prior, source in (("actor_prior.", "actor."), ("selector_prior.", "selector.")):
             if not any(k.startswith(prior) for k in state):
                 state.update({prior + k[len(source) :]: v for k, v in state_dict.items() if k.startswith(source)})
-        return super().load_state_dict(state, strict, assign)
+        result = super().load_state_dict(state, strict, assign)
+        self._freeze_priors()
+        return result
 
     def set_training_mode(self, mode: bool) -> None:
         """Train/eval mode of the online networks (targets stay in eval mode); a no-op when unchanged, since SB3's

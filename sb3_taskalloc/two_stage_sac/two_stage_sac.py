@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
@@ -14,7 +14,7 @@ from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import obs_as_tensor, polyak_update
+from stable_baselines3.common.utils import obs_as_tensor
 from torch.nn import functional as F
 
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
@@ -297,8 +297,8 @@ class TwoStageSAC(OffPolicyAlgorithm):
                 logs.setdefault(key, []).append(value)
             if gradient_step % self.target_update_interval == 0:
                 if self.critic is not None and self.critic_target is not None:
-                    polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-                polyak_update(self.select_critic.parameters(), self.select_critic_target.parameters(), self.tau)
+                    foreach_polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                foreach_polyak_update(self.select_critic.parameters(), self.select_critic_target.parameters(), self.tau)
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
@@ -489,6 +489,17 @@ def frozen(module: th.nn.Module) -> Iterator[None]:
     finally:
         for p in params:
             p.requires_grad_(True)
+
+
+@th.no_grad()
+def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
+    """SB3's :func:`~stable_baselines3.common.utils.polyak_update` (θ' ← (1 − τ)·θ' + τ·θ, the same arithmetic) with
+    one multi-tensor kernel per operation instead of a Python loop over the parameters."""
+    params, target_params = list(params), list(target_params)
+    if len(params) != len(target_params):
+        raise ValueError(f"{len(params)} parameters but {len(target_params)} target parameters")
+    th._foreach_mul_(target_params, 1 - tau)
+    th._foreach_add_(target_params, params, alpha=tau)
 
 
 def _optimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
