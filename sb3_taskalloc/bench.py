@@ -130,35 +130,69 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step, and replay memory."""
+    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step, split into the
+    gradient step and the stochastic decision; replay memory; and the gradient step on RBF scaled to fewer entities
+    (what a step costs apart from the entity count)."""
     import gymnasium as gym
     import torch as th
+    from gymnasium.wrappers import TimeLimit
 
     import envs  # noqa: F401
+    from envs.rbf import RBFEnv
     from sb3_taskalloc import TwoStageSAC
+
+    def sync(device: str) -> None:
+        if device == "cuda":
+            th.cuda.synchronize()
+
+    def measure(model: TwoStageSAC, device: str, steps: int) -> dict[str, float]:
+        model.learn(64)
+        t0 = time.perf_counter()
+        model.learn(steps, reset_num_timesteps=False)
+        rate = steps / (time.perf_counter() - t0)
+        reps = max(steps // 5, 4)
+        sync(device)
+        t0 = time.perf_counter()
+        model.train(gradient_steps=reps, batch_size=64)
+        sync(device)
+        grad_ms = (time.perf_counter() - t0) / reps * 1e3
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            model._sample_action(learning_starts=0)
+        sync(device)
+        return {"env_steps_per_s": rate, "gradient_step_ms": grad_ms, "decision_ms": (time.perf_counter() - t0) / reps * 1e3}
 
     devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
     rows = []
+    steps = 20 if args.quick else 100
     for device in devices:
         for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/EPT-v0", "TaskAlloc/MT-v0", "TaskAlloc/Almighty-v0"):
             if args.quick and env_id != "TaskAlloc/RBF-v0":
                 continue
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
-            model.learn(64)
-            steps = 20 if args.quick else 100
-            t0 = time.perf_counter()
-            model.learn(steps, reset_num_timesteps=False)
-            rate = steps / (time.perf_counter() - t0)
+            figures = measure(model, device, steps)
             per = model.replay_buffer.nbytes_per_transition()
             rows.append(
                 {
                     "device": device,
                     "env": env_id,
-                    "env_steps_per_s": rate,
-                    "s_per_100_step_episode": 100 / rate,
-                    "replay_bytes_per_transition": per,
+                    **figures,
                     "replay_GB_for_100k": per * 100_000 / 1e9,
                     "target_steps_per_s": 50 if env_id == "TaskAlloc/RBF-v0" else None,
+                }
+            )
+        for n in () if args.quick else (10, 25, 50):
+            env = TimeLimit(RBFEnv(entity_rows=range(n)), 100)  # RBF-v0 with its first n entities
+            model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
+            figures = measure(model, device, steps // 2)
+            per = model.replay_buffer.nbytes_per_transition()
+            rows.append(
+                {
+                    "device": device,
+                    "env": f"RBF-v0, first {n} entities",
+                    **figures,
+                    "replay_GB_for_100k": per * 100_000 / 1e9,
+                    "target_steps_per_s": None,
                 }
             )
     return rows
