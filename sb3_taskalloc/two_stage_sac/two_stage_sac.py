@@ -101,7 +101,10 @@ class TwoStageSAC(OffPolicyAlgorithm):
        policy), as a behaviour prior (the regularised optimum is π ∝ π₀·exp(Q/β) where the entropy term is small).
        The critics' targets keep the entropy bonus of details 2 and 5. With ``heuristic_init`` the actors then
        leave the cost-greedy rules only where the critics' values outweigh the KL: without it, the noisy early
-       critics undo the rules within a few hundred gradient steps (README, RBF).
+       critics undo the rules within a few hundred gradient steps (README, RBF). The rule-initialised π₀ has
+       task embeddings that are identically 0, so its scores are computed without its dot products (``freeze``).
+    13. Updates: Adam is fused by default (``TAMPolicy._make_optimizer``) and the soft target updates are one
+       multi-tensor operation each (:func:`foreach_polyak_update`, SB3's arithmetic): faster, same updates.
 
     :param policy: ``"TAMPolicy"`` or a :class:`TAMPolicy` subclass
     :param env: a ``TaskAlloc`` environment (or its id)
