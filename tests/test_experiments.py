@@ -130,3 +130,15 @@ def test_goal_lines_from_hand_written_cells(tmp_path):
     assert "on the task shift: 0.667 (negative returns: reference cost / Ours' cost)" in text
     run._record("Greedy", "train", 0, "-10", 0.0)  # a later record of a cell replaces the earlier one
     assert "Ours / Greedy on the training env: n/a (signs differ: difference +130.0)" in run.write_table().read_text()
+
+
+def test_goal_lines_use_only_the_tables_seeds(tmp_path):
+    """Cells of a seed beyond the table's ``seeds`` (from a run with more seeds) enter neither the table nor its goals."""
+    run = TableRun("RBF", 1, "smoke", tmp_path, progress=False)
+    run.folder.mkdir(parents=True)
+    for method, values in {"Ours": ("110", "50"), "Greedy": ("100", "100")}.items():
+        for seed, value in enumerate(values):
+            run._record(method, "train", seed, value, 0.0)
+    assert "Ours / Greedy on the training env: 1.100 (goal ≥ 1)" in run.write_table().read_text()
+    two = TableRun("RBF", 2, "smoke", tmp_path, progress=False)
+    assert "Ours / Greedy on the training env: 0.800 (goal ≥ 1)" in two.write_table().read_text()

@@ -393,12 +393,17 @@ class TableRun:
         return path
 
     def means(self) -> dict[tuple[str, str], float]:
-        """(row, method) → mean over the finished seeds (numbers only)."""
+        """(row, method) → mean over the finished seeds below ``seeds`` (numbers only), as in the table: cells of
+        further seeds in ``cells.csv`` (a run with more seeds) do not enter a table of fewer."""
         done = self.done()
         out: dict[tuple[str, str], float] = {}
         for row in ROWS:
             for name in self.methods:
-                numbers = [float(v) for (m, r, _), v in done.items() if m == name and r == row and not v.startswith("n/a")]
+                numbers = [
+                    float(v)
+                    for (m, r, s), v in done.items()
+                    if m == name and r == row and s < self.seeds and not v.startswith("n/a")
+                ]
                 if numbers:
                     out[(row, name)] = float(np.mean(numbers))
         return out
