@@ -1,0 +1,36 @@
+"""``python -m sb3_taskalloc.bench``: each benchmark runs (``--quick``) and writes well-formed JSON (DESIGN §10).
+
+Only the shape and sanity of the figures are checked here; the performance targets are measured by the benchmarks
+themselves, never asserted by a timed test.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sb3_taskalloc import bench
+
+
+@pytest.mark.parametrize(
+    "which, keys",
+    [
+        ("envs", {"env", "steps_per_s", "steps_per_s_gym_make", "deepcopy_ms", "entities"}),
+        ("policy", {"device", "entities", "tasks", "predict_ms"}),
+        ("train", {"device", "env", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
+    ],
+)
+def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
+    bench.main([which, "--quick", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / f"bench_{which}.json").read_text())
+    assert record["benchmark"] == which
+    assert record["command"] == f"python -m sb3_taskalloc.bench {which} --quick --out {tmp_path}"
+    assert record["torch_threads"] == 1
+    rows = record["results"]
+    assert rows and all(keys <= set(row) for row in rows)
+    for row in rows:
+        for key in keys:
+            if key.endswith(("_per_s", "_ms", "_GB_for_100k")):
+                assert row[key] > 0, (key, row)
+    assert f"## {which}" in capsys.readouterr().out  # the printed table
