@@ -55,6 +55,9 @@ def test_preassign_critic_target_and_losses(model):
         q_tot = critic.mixer((critic.scorer(view) * c).sum(-1), view)
         expected = expected + 0.5 * ((q_tot - y) ** 2).mean()
     th.testing.assert_close(out["critic_loss"], expected, atol=1e-4, rtol=1e-4)
+    critic_only = preassign_losses(model, view, next_view, data, actor_terms=False)  # the critic warm-up's call
+    th.testing.assert_close(critic_only["critic_loss"], out["critic_loss"], rtol=0, atol=0)
+    assert critic_only["dist"] is None and critic_only["mean_entropy"] is None
     # Actor: −α H(s) − min_k AMIX^k(Σ_j π Q^k)
     pi = model.actor(view)
     h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))

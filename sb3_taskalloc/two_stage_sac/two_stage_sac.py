@@ -321,7 +321,7 @@ class TwoStageSAC(OffPolicyAlgorithm):
         self, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples, actor_learns: bool = True
     ) -> dict[str, float]:
         assert self.actor is not None and self.critic is not None and self.critic_target is not None
-        losses = preassign_losses(self, view, next_view, data)
+        losses = preassign_losses(self, view, next_view, data, actor_terms=actor_learns)
         logs = {"ent_coef": losses["ent_coef"].item()}
         if not actor_learns:  # critic warm-up (``actor_warmup``): the actor and α keep their initial values
             _optimize(self.critic.optimizer, losses["critic_loss"])
@@ -512,18 +512,28 @@ def _optimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
 
 
 def preassign_losses(
-    model: TwoStageSAC, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples
+    model: TwoStageSAC,
+    view: ObsView,
+    next_view: ObsView,
+    data: TwoStageReplayBufferSamples,
+    actor_terms: bool = True,
 ) -> dict[str, Any]:
-    """Stage-1 critic loss, temperature statistics and the actor's distribution on ``view`` (implementation details 2–4)."""
+    """Stage-1 critic loss, temperature statistics and the actor's distribution on ``view`` (implementation details 2–4).
+
+    :param actor_terms: also return the actor's distribution and entropy statistics on ``view`` (``False``: the critic
+        loss alone, for the critic warm-up; ``dist``, ``mean_entropy`` and ``target_entropy`` are then None)
+    """
     assert model.actor is not None and model.critic is not None and model.critic_target is not None
-    free = view.assignable
-    dist = model.actor(view)
-    entropy_i = dist.entropy()  # (B, N), 0 where the entity has no choice
-    n_free = free.sum(1)
-    has_free = n_free > 0
-    mean_entropy = (entropy_i.sum(1) / n_free.clamp_min(1))[has_free]
-    n_open = view.task_mask.sum(1).float()
-    target_entropy = (model.target_entropy_ratio * th.log(n_open.clamp_min(1)))[has_free]
+    dist = mean_entropy = target_entropy = None
+    if actor_terms:
+        free = view.assignable
+        dist = model.actor(view)
+        entropy_i = dist.entropy()  # (B, N), 0 where the entity has no choice
+        n_free = free.sum(1)
+        has_free = n_free > 0
+        mean_entropy = (entropy_i.sum(1) / n_free.clamp_min(1))[has_free]
+        n_open = view.task_mask.sum(1).float()
+        target_entropy = (model.target_entropy_ratio * th.log(n_open.clamp_min(1)))[has_free]
     alpha = model._alpha(model.log_ent_coef, model.ent_coef_tensor)
     with th.no_grad():
         next_dist = model.actor(next_view)
