@@ -145,7 +145,8 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
         if device == "cuda":
             th.cuda.synchronize()
 
-    def measure(model: TwoStageSAC, device: str, steps: int) -> dict[str, float]:
+    def measure(model: TwoStageSAC, device: str, steps: int, env: str, target: int | None = None) -> dict[str, Any]:
+        """One row: env steps/s of ``learn``, then the gradient step and the stochastic decision timed apart."""
         model.learn(64)
         t0 = time.perf_counter()
         model.learn(steps, reset_num_timesteps=False)
@@ -160,7 +161,15 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
         for _ in range(reps):
             model._sample_action(learning_starts=0)
         sync(device)
-        return {"env_steps_per_s": rate, "gradient_step_ms": grad_ms, "decision_ms": (time.perf_counter() - t0) / reps * 1e3}
+        return {
+            "device": device,
+            "env": env,
+            "env_steps_per_s": rate,
+            "gradient_step_ms": grad_ms,
+            "decision_ms": (time.perf_counter() - t0) / reps * 1e3,
+            "replay_GB_for_100k": model.replay_buffer.nbytes_per_transition() * 100_000 / 1e9,
+            "target_steps_per_s": target,
+        }
 
     devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
     rows = []
@@ -170,31 +179,11 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             if args.quick and env_id != "TaskAlloc/RBF-v0":
                 continue
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
-            figures = measure(model, device, steps)
-            per = model.replay_buffer.nbytes_per_transition()
-            rows.append(
-                {
-                    "device": device,
-                    "env": env_id,
-                    **figures,
-                    "replay_GB_for_100k": per * 100_000 / 1e9,
-                    "target_steps_per_s": 50 if env_id == "TaskAlloc/RBF-v0" else None,
-                }
-            )
+            rows.append(measure(model, device, steps, env_id, 50 if env_id == "TaskAlloc/RBF-v0" else None))
         for n in () if args.quick else (10, 25, 50):
             env = TimeLimit(RBFEnv(entity_rows=range(n)), 100)  # RBF-v0 with its first n entities
             model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
-            figures = measure(model, device, steps // 2)
-            per = model.replay_buffer.nbytes_per_transition()
-            rows.append(
-                {
-                    "device": device,
-                    "env": f"RBF-v0, first {n} entities",
-                    **figures,
-                    "replay_GB_for_100k": per * 100_000 / 1e9,
-                    "target_steps_per_s": None,
-                }
-            )
+            rows.append(measure(model, device, steps // 2, f"RBF-v0, first {n} entities"))
     return rows
 
 

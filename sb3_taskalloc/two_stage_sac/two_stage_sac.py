@@ -354,7 +354,7 @@ class TwoStageSAC(OffPolicyAlgorithm):
             data.pick_rank[rows],
             alpha,
             self.target_entropy_ratio,
-            self.select_prior_coef,
+            self.select_prior_coef if actor_learns else 0.0,  # the prior term enters only the actor loss
         )
         logs = {"select_ent_coef": alpha.item()}
         if losses["n"] == 0:
