@@ -25,12 +25,27 @@ BenchFn = Callable[[argparse.Namespace], list[dict[str, Any]]]
 
 
 def _machine() -> dict[str, Any]:
+    import torch as th
+
     return {
         "python": platform.python_version(),
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
         "numpy": np.__version__,
+        "torch": th.__version__,
+        "gpu": th.cuda.get_device_name() if th.cuda.is_available() else None,
     }
+
+
+def _devices(args: argparse.Namespace) -> list[str]:
+    """The torch devices that ``--device`` names: ``auto`` is the CPU, plus CUDA when a GPU is available."""
+    import torch as th
+
+    if args.device == "auto":
+        return ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
+    if args.device == "cuda" and not th.cuda.is_available():
+        raise SystemExit(f"--device cuda: no CUDA device is available to torch {th.__version__}")
+    return [args.device]
 
 
 def bench_envs(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -99,7 +114,7 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
 
     from sb3_taskalloc import TAMPolicy
 
-    devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
+    devices = _devices(args)
     rows: list[dict[str, Any]] = []
     sizes = [(100, 10)] + [(n, m) for n in (50, 100, 500, 1000) for m in (5, 10, 50)]
     if args.quick:
@@ -171,7 +186,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             "target_steps_per_s": target,
         }
 
-    devices = ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
+    devices = _devices(args)
     rows = []
     steps = 20 if args.quick else 100
     for device in devices:
@@ -218,7 +233,7 @@ def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:
         return (time.perf_counter() - t0) / n
 
     th.manual_seed(0)
-    sac = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0)
+    sac = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu")  # the baselines run on the CPU
     rows.append({"method": "TwoStageSAC (untrained)", "setting": "defaults", "s_per_decision": per_decision(lambda _: sac)})
     rows.append({"method": "Greedy", "setting": "", "s_per_decision": per_decision(lambda env: GreedyAllocator())})
     rows.append({"method": "MILP", "setting": "time_limit 10 s", "s_per_decision": per_decision(lambda env: MILPAllocator())})
@@ -284,7 +299,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
     parser.add_argument("--out", default="bench_out", help="folder for the JSON results")
     parser.add_argument("--quick", action="store_true", help="shorter timings (smoke runs)")
-    parser.add_argument("--device", default="cpu", help="torch device for the policy benchmarks (cpu, cuda, auto)")
+    parser.add_argument(
+        "--device",
+        default="auto",
+        choices=["auto", "cpu", "cuda"],
+        help="devices for the policy and train benchmarks: auto = the CPU, plus CUDA when a GPU is available",
+    )
     args = parser.parse_args(argv)
     import torch
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from sb3_taskalloc import bench
 
@@ -34,3 +35,13 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
             if key.endswith(("_per_s", "_ms", "_GB_for_100k")):
                 assert row[key] > 0, (key, row)
     assert f"## {which}" in capsys.readouterr().out  # the printed table
+
+
+def test_bench_device_option(tmp_path, capsys):
+    bench.main(["policy", "--quick", "--device", "cpu", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "bench_policy.json").read_text())
+    assert {row["device"] for row in record["results"]} == {"cpu"}
+    assert record["machine"]["torch"]
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit, match="--device cuda: no CUDA device"):
+            bench.main(["policy", "--quick", "--device", "cuda", "--out", str(tmp_path)])

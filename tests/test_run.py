@@ -5,6 +5,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
@@ -89,6 +90,28 @@ def test_device_auto_is_cpu_or_cuda():
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", device="auto", policy_kwargs={"hidden_dim": 8})
     assert model.device.type in ("cpu", "cuda")
     assert next(model.policy.parameters()).device.type == model.device.type
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_learn_then_load_on_cpu(tmp_path):
+    """Training runs on CUDA (buffers, entropy coefficients, optimizers there), and the saved model loads on the CPU
+    with the same weights and the same pre-assignment probabilities."""
+    kwargs = {"learning_starts": 10, "batch_size": 8, "seed": 0, "policy_kwargs": {"hidden_dim": 8}}
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", device="cuda", **kwargs)
+    model.learn(24)
+    assert {p.device.type for p in model.policy.parameters()} == {"cuda"}
+    assert model.log_ent_coef is None or model.log_ent_coef.device.type == "cuda"
+    model.save(tmp_path / "model")
+    cpu = TwoStageSAC.load(tmp_path / "model", device="cpu")
+    assert {p.device.type for p in cpu.policy.parameters()} == {"cpu"}
+    for key, value in model.policy.state_dict().items():
+        assert th.equal(value.cpu(), cpu.policy.state_dict()[key]), key
+    obs, _ = gym.make("TaskAlloc/RBF-v0").reset(seed=1)
+    assert model.policy.actor is not None and cpu.policy.actor is not None
+    with th.no_grad():
+        on_gpu = model.policy.actor(model.policy.parse(model.policy.obs_to_tensor(obs)[0])).probs.cpu()
+        on_cpu = cpu.policy.actor(cpu.policy.parse(cpu.policy.obs_to_tensor(obs)[0])).probs
+    th.testing.assert_close(on_gpu, on_cpu, atol=1e-5, rtol=1e-4)
 
 
 def test_tensorboard_log(tmp_path):

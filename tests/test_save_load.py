@@ -28,7 +28,7 @@ def test_save_load_identical_predict(tmp_path, kwargs):
     for obs in observations("TaskAlloc/RBF-v0"):
         np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
     for key, value in model.policy.state_dict().items():
-        assert np.array_equal(value.numpy(), loaded.policy.state_dict()[key].numpy()), key
+        assert np.array_equal(value.cpu().numpy(), loaded.policy.state_dict()[key].cpu().numpy()), key
     # Entropy coefficients and optimizers come back too; training resumes.
     assert (
         float(loaded.log_ent_coef.detach()) == pytest.approx(float(model.log_ent_coef.detach()))

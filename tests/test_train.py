@@ -29,6 +29,7 @@ def model() -> TwoStageSAC:
         prior_coef=0.0,  # the paper's losses; the prior term is checked on its own
         select_prior_coef=0.0,
         policy_kwargs={"hidden_dim": 16},
+        device="cpu",  # the hand-built batches below are CPU tensors
     )
     m.learn(40)
     return m
@@ -158,7 +159,7 @@ def hand_view(reward: float = 10.0) -> ObsView:
 
 def test_select_losses_match_sequential_closed_form():
     env = gym.make("TaskAlloc/Almighty-v0", n_skills=1, specialists=2)  # K = 1, N = 3, M = 2 (only its spaces)
-    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16}, learning_starts=0)
+    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16}, learning_starts=0, device="cpu")
     policy = m.policy
     view = hand_view()
     cand = th.tensor([[[True, True, True]]])
@@ -223,7 +224,7 @@ def test_abandoned_when_unprofitable():
     assert done.all() and st.covered.all() and not st.kept().any()
     # Whatever the policy picks, the task is not kept: covering costs at least 1 + 3 or 3 > 2.5.
     env = gym.make("TaskAlloc/Almighty-v0", n_skills=1, specialists=2)
-    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16})
+    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16}, device="cpu")
     for deterministic in (True, False):
         st = m.policy.select_round(view, th.tensor([[0, -1, 0]]), deterministic=deterministic)
         assert not st.kept().any() and not st.active.any()
@@ -347,7 +348,7 @@ def test_select_losses_match_sequential_decoding_on_many_tasks():
     """The batched, teacher-forced select-stage terms equal a step-by-step replay of the stored decisions with the
     inference-time state machine, on RBF observations where many tasks decode at once."""
     env = gym.make("TaskAlloc/RBF-v0")
-    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16})
+    m = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16}, device="cpu")
     policy = m.policy
     obs_list, (obs, _) = [], env.reset(seed=3)
     for _ in range(4):

@@ -87,10 +87,16 @@ def test_worker_observations_offer_the_nearest_open_task():
 
 
 def run_co_training(seed: int) -> tuple[TwoStageSAC, WorkerMarket]:
-    workers = BiddingWorkers(
-        3, gym.make("TaskAlloc/RBF-v0", bidding=True).unwrapped.bid_max, seed=seed, learning_starts=200, batch_size=32
-    )
-    kwargs = {"learning_starts": 30, "batch_size": 16, "select_batch_size": 4, "policy_kwargs": {"hidden_dim": 16}}
+    # On the CPU: bit-identical reruns are a CPU property (CUDA's atomic adds sum in any order).
+    bid_max = gym.make("TaskAlloc/RBF-v0", bidding=True).unwrapped.bid_max
+    workers = BiddingWorkers(3, bid_max, seed=seed, learning_starts=200, batch_size=32, device="cpu")
+    kwargs = {
+        "learning_starts": 30,
+        "batch_size": 16,
+        "select_batch_size": 4,
+        "policy_kwargs": {"hidden_dim": 16},
+        "device": "cpu",
+    }
     return co_train("TaskAlloc/RBF-v0", 60, workers=workers, seed=seed, manager_kwargs=kwargs)
 
 
@@ -100,14 +106,16 @@ def params(module: th.nn.Module) -> th.Tensor:
 
 def test_co_training_is_deterministic_and_trains_both():
     th.manual_seed(123)
-    workers_before = BiddingWorkers(3, 3.0, seed=0, learning_starts=200, batch_size=32)
+    workers_before = BiddingWorkers(3, 3.0, seed=0, learning_starts=200, batch_size=32, device="cpu")
     manager, market = run_co_training(0)
     manager2, market2 = run_co_training(0)
     assert th.equal(params(manager.policy), params(manager2.policy))
     assert th.equal(params(market.workers.ddpg.actor), params(market2.workers.ddpg.actor))
     assert market.workers.ddpg._n_updates > 0 and manager._n_updates > 0
     assert not th.equal(params(market.workers.ddpg.actor), params(workers_before.ddpg.actor))
-    fresh = TwoStageSAC("TAMPolicy", make_market("TaskAlloc/RBF-v0", seed=0), seed=0, policy_kwargs={"hidden_dim": 16})
+    fresh = TwoStageSAC(
+        "TAMPolicy", make_market("TaskAlloc/RBF-v0", seed=0), seed=0, policy_kwargs={"hidden_dim": 16}, device="cpu"
+    )
     assert not th.equal(params(manager.policy), params(fresh.policy))
 
 
