@@ -22,6 +22,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np
 
 BenchFn = Callable[[argparse.Namespace], list[dict[str, Any]]]
+#: The profiler's names of the host calls that launch a CUDA kernel.
+LAUNCH_EVENTS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx")
 
 
 def _machine() -> dict[str, Any]:
@@ -147,7 +149,8 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
 def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step, split into the
     gradient step and the stochastic decision; replay memory; and the gradient step on RBF scaled to fewer entities
-    (what a step costs apart from the entity count)."""
+    (what a step costs apart from the entity count). On CUDA, also the GPU kernel time and the kernel launches per
+    gradient step (``torch.profiler``; ``None`` on the CPU)."""
     import gymnasium as gym
     import torch as th
     from gymnasium.wrappers import TimeLimit
@@ -176,12 +179,25 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
         for _ in range(reps):
             model._sample_action(learning_starts=0)
         sync(device)
+        decision_ms = (time.perf_counter() - t0) / reps * 1e3
+        kernel_ms = launches = None
+        if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
+            from torch.profiler import ProfilerActivity, profile
+
+            with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+                model.train(gradient_steps=reps, batch_size=64)
+                sync(device)
+            events = prof.key_averages()
+            kernel_ms = sum(e.self_device_time_total for e in events if e.device_type.name == "CUDA") / reps / 1e3
+            launches = sum(e.count for e in events if e.key in LAUNCH_EVENTS) / reps
         return {
             "device": device,
             "env": env,
             "env_steps_per_s": rate,
             "gradient_step_ms": grad_ms,
-            "decision_ms": (time.perf_counter() - t0) / reps * 1e3,
+            "gpu_kernel_ms_per_gradient_step": kernel_ms,
+            "kernel_launches_per_gradient_step": launches,
+            "decision_ms": decision_ms,
             "replay_GB_for_100k": model.replay_buffer.nbytes_per_transition() * 100_000 / 1e9,
             "target_steps_per_s": target,
         }
@@ -282,16 +298,22 @@ BENCHES: dict[str, BenchFn] = {"envs": bench_envs, "policy": bench_policy, "trai
 def _print_table(name: str, rows: list[dict[str, Any]]) -> None:
     if not rows:
         return
-    keys = list(rows[0])
+    keys = list(dict.fromkeys(key for row in rows for key in row))  # every column, in order of first appearance
     print(f"\n## {name}")
     print("| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))
     for row in rows:
-        cells = [
-            f"{v:,.3g}" if isinstance(v, float) and abs(v) < 100 else f"{v:,.0f}" if isinstance(v, float) else str(v)
-            for v in row.values()
-        ]
+        cells = [_cell(row.get(key)) for key in keys]
         print("| " + " | ".join(cells) + " |")
+
+
+def _cell(v: Any) -> str:
+    """A table cell: 3 significant digits below 100, whole numbers above, blank for a missing value."""
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return f"{v:,.3g}" if abs(v) < 100 else f"{v:,.0f}"
+    return str(v)
 
 
 def main(argv: list[str] | None = None) -> None:

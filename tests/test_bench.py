@@ -45,3 +45,10 @@ def test_bench_device_option(tmp_path, capsys):
     if not torch.cuda.is_available():
         with pytest.raises(SystemExit, match="--device cuda: no CUDA device"):
             bench.main(["policy", "--quick", "--device", "cuda", "--out", str(tmp_path)])
+
+
+def test_table_has_every_column(capsys):
+    bench._print_table("t", [{"a": 1.23456, "b": None}, {"a": 1234.5, "c": "x"}])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[1] == "| a | b | c |"
+    assert lines[3] == "| 1.23 |  |  |" and lines[4] == "| 1,234 |  | x |"
