@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> None:
         eval_env = make_vec_env(args.env, n_envs=1, seed=10_000 + args.seed)  # same evaluation episodes for every agent
         mean, std = evaluate_policy(agent, eval_env, n_eval_episodes=args.eval_episodes, deterministic=True)  # type: ignore[arg-type]
         results[name] = (float(mean), float(std))  # type: ignore[arg-type]
-    print(f"\n{args.env}: return over {args.eval_episodes} evaluation episodes (train {args.steps} steps, {train_s:.0f} s)")
+    trained = f"train {args.steps} steps on {model.device}, {train_s:.0f} s"
+    print(f"\n{args.env}: return over {args.eval_episodes} evaluation episodes ({trained})")
     for name, (mean, std) in results.items():
         print(f"  {name:12s} {mean:9.2f} ± {std:.2f}")
 
@@ -66,7 +67,10 @@ def main(argv: list[str] | None = None) -> None:
         gym.make(args.env, render_mode="rgb_array"), lambda o: model.predict(o, deterministic=True)[0], out / "episode.gif"
     )
     (out / "results.json").write_text(
-        json.dumps({"env": args.env, "steps": args.steps, "train_seconds": train_s, "eval": results}, indent=2)
+        json.dumps(
+            {"env": args.env, "steps": args.steps, "device": str(model.device), "train_seconds": train_s, "eval": results},
+            indent=2,
+        )
     )
     print(f"wrote {png}, {gif} (episode return {ret:.2f}), {out / 'two_stage_sac.zip'}, {out / 'results.json'}")
 

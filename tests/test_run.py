@@ -123,3 +123,21 @@ def test_tensorboard_log(tmp_path):
     model.learn(10, log_interval=1)
     runs = list(tmp_path.glob("TwoStageSAC_*"))
     assert runs and list(runs[0].glob("events.out.tfevents.*"))
+
+
+def test_demo_writes_its_outputs(tmp_path, capsys):
+    """``make demo``'s entry point, on a short budget: it compares with the baselines and writes what it promises."""
+    import json
+
+    from sb3_taskalloc import demo
+
+    demo.main(["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--eval-episodes", "1", "--threads", "1", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "results.json").read_text())
+    assert record["env"] == "TaskAlloc/EPT-v0" and record["steps"] == 40 and record["device"] in ("cpu", "cuda")
+    assert set(record["eval"]) == {"TwoStageSAC", "Greedy", "Random"}
+    assert all(np.isfinite(mean) for mean, _ in record["eval"].values())
+    for name in ("learning_curve.png", "episode.gif", "two_stage_sac.zip"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    loaded = TwoStageSAC.load(tmp_path / "two_stage_sac.zip", device="cpu")
+    assert loaded.num_timesteps == 40
+    assert "TwoStageSAC" in capsys.readouterr().out
