@@ -68,6 +68,25 @@ def test_same_seed_same_run():
     assert not np.array_equal(a.replay_buffer.actions[:20], c.replay_buffer.actions[:20])
 
 
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_same_seed_same_weights_with_deterministic_algorithms():
+    """On CUDA, atomic adds sum in any order, so reruns differ slightly unless PyTorch's deterministic algorithms are
+    on (with ``CUBLAS_WORKSPACE_CONFIG`` set, see conftest); then two runs give bit-identical weights."""
+
+    def run() -> th.Tensor:
+        model = TwoStageSAC(
+            "TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=32, batch_size=32, seed=3, device="cuda", policy_kwargs=SMALL
+        )
+        model.learn(100)
+        return th.cat([p.detach().flatten().cpu() for p in model.policy.parameters()])
+
+    th.use_deterministic_algorithms(True)
+    try:
+        assert th.equal(run(), run())
+    finally:
+        th.use_deterministic_algorithms(False)
+
+
 def test_size_transfer(tmp_path):
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=0, policy_kwargs=SMALL)
     model.learn(12)
