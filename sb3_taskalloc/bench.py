@@ -50,6 +50,14 @@ def _devices(args: argparse.Namespace) -> list[str]:
     return [args.device]
 
 
+def _sync(device: str) -> None:
+    """Wait for the device's queued work, so that a host clock times it (a no-op on the CPU)."""
+    if device == "cuda":
+        import torch as th
+
+        th.cuda.synchronize()
+
+
 def bench_envs(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Env steps/s with random valid allocations (one thread, unwrapped and as made by ``gym.make``) and deepcopy time."""
     import gymnasium as gym
@@ -137,8 +145,7 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
                 def decide_batch(policy: TAMPolicy = policy, batch: Any = batch, device: str = device) -> None:
                     with th.no_grad():
                         policy.decide(policy.parse(batch), deterministic=True)
-                        if device == "cuda":
-                            th.cuda.synchronize()
+                        _sync(device)
 
                 row["batch256_ms_per_obs"] = _median_ms(decide_batch, 3 if args.quick else 10, warmup=1) / 256
                 row["target"] = "predict <= 5 ms, batch 256 <= 0.5 ms/obs"
@@ -152,16 +159,9 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     (what a step costs apart from the entity count). On CUDA, also the GPU kernel time and the kernel launches per
     gradient step (``torch.profiler``; ``None`` on the CPU)."""
     import gymnasium as gym
-    import torch as th
-    from gymnasium.wrappers import TimeLimit
 
     import envs  # noqa: F401
-    from envs.rbf import RBFEnv
     from sb3_taskalloc import TwoStageSAC
-
-    def sync(device: str) -> None:
-        if device == "cuda":
-            th.cuda.synchronize()
 
     def measure(model: TwoStageSAC, device: str, steps: int, env: str, target: int | None = None) -> dict[str, Any]:
         """One row: env steps/s of ``learn``, then the gradient step and the stochastic decision timed apart."""
@@ -170,15 +170,15 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
         model.learn(steps, reset_num_timesteps=False)
         rate = steps / (time.perf_counter() - t0)
         reps = max(steps // 5, 4)
-        sync(device)
+        _sync(device)
         t0 = time.perf_counter()
         model.train(gradient_steps=reps, batch_size=64)
-        sync(device)
+        _sync(device)
         grad_ms = (time.perf_counter() - t0) / reps * 1e3
         t0 = time.perf_counter()
         for _ in range(reps):
             model._sample_action(learning_starts=0)
-        sync(device)
+        _sync(device)
         decision_ms = (time.perf_counter() - t0) / reps * 1e3
         kernel_ms = launches = None
         if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
@@ -186,7 +186,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
 
             with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
                 model.train(gradient_steps=reps, batch_size=64)
-                sync(device)
+                _sync(device)
             events = prof.key_averages()
             kernel_ms = sum(e.self_device_time_total for e in events if e.device_type.name == "CUDA") / reps / 1e3
             launches = sum(e.count for e in events if e.key in LAUNCH_EVENTS) / reps
@@ -212,7 +212,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
             rows.append(measure(model, device, steps, env_id, 50 if env_id == "TaskAlloc/RBF-v0" else None))
         for n in () if args.quick else (10, 25, 50):
-            env = TimeLimit(RBFEnv(entity_rows=range(n)), 100)  # RBF-v0 with its first n entities
+            env = gym.make("TaskAlloc/RBF-v0", entity_rows=tuple(range(n)))  # RBF-v0 with its first n entities
             model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
             rows.append(measure(model, device, steps // 2, f"RBF-v0, first {n} entities"))
     return rows
