@@ -244,3 +244,56 @@ def test_optimizers_default_to_fused_adam():
     assert "fused" not in chosen.optimizer_kwargs  # the user's kwargs are saved unchanged
     sgd = make_policy(env, optimizer_class=th.optim.SGD)
     assert isinstance(sgd.selector.optimizer, th.optim.SGD)
+
+
+@pytest.mark.parametrize("n_attention_layers", [0, 1])
+def test_scorer_dot_product_equals_its_definition(n_attention_layers):
+    """``TAMEncoder.dot`` (the entity MLP's last layer moved to the task side) equals h_i·g_j / scale computed from the
+    embeddings, in value and in every parameter's gradient."""
+    th.manual_seed(0)
+    env = gym.make("TaskAlloc/RBF-v0")
+    policy = make_policy(env, n_attention_layers=n_attention_layers, heuristic_init=False)
+    assert policy.actor is not None
+    encoder, scale = policy.actor.scorer.encoder, policy.actor.scorer.scale
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=1)))
+    weights = th.randn(view.pair_cost.shape, dtype=th.float64)
+
+    def value_and_grads(fn):
+        encoder.zero_grad()
+        out = fn()
+        (out.double() * weights).sum().backward()
+        return out.detach(), [p.grad.clone() for p in encoder.parameters()]
+
+    def reference():
+        h, g = encoder(view)
+        return h @ g.transpose(1, 2) / scale
+
+    fast, fast_grads = value_and_grads(lambda: encoder.dot(view, scale))
+    ref, ref_grads = value_and_grads(reference)
+    th.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+    for a, b in zip(fast_grads, ref_grads, strict=True):
+        th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_narrow_linear_matches_linear():
+    """``NarrowLinear`` (narrow inputs, reordered weight-gradient product) is ``nn.Linear`` in value and gradients, is
+    what the MLPs use for the raw features, and keeps the state-dict keys."""
+    from sb3_taskalloc.common.torch_layers import NarrowLinear, linear, mlp
+
+    th.manual_seed(0)
+    fast = NarrowLinear(8, 64)
+    ref = th.nn.Linear(8, 64)
+    ref.load_state_dict(fast.state_dict())
+    x = th.randn(4, 30, 8)
+    grads = []
+    for layer in (fast, ref):
+        xi = x.clone().requires_grad_(True)
+        (layer(xi) ** 2).sum().backward()
+        grads.append((layer(x), xi.grad, layer.weight.grad, layer.bias.grad))
+    for a, b in zip(*grads, strict=True):
+        th.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    with th.no_grad():
+        th.testing.assert_close(fast(x), ref(x))
+    assert isinstance(mlp(8, 64, 64)[0], NarrowLinear) and type(mlp(64, 64, 64)[0]) is th.nn.Linear
+    assert type(linear(7, 1)) is th.nn.Linear  # one output: nothing to gain
+    assert list(fast.state_dict()) == ["weight", "bias"]
