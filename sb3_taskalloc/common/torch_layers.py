@@ -214,12 +214,15 @@ class TAMEncoder(nn.Module):
         if self.entity_blocks or not isinstance(last, nn.Linear):
             h, g = self(view)
             return h @ g.transpose(1, 2) / scale
-        z = self.f_h[:-1](view.entity)  # (B, N, d)
-        g = self.embed_tasks(view) / scale
-        gw = g @ last.weight  # (B, M, d): Wᵀg_j
-        dot_t = gw @ z.transpose(1, 2)  # (B, M, N)
-        if last.bias is not None:
-            dot_t = dot_t + (g @ last.bias).unsqueeze(-1)
+        z = view.entity
+        for i in range(len(self.f_h) - 1):  # (B, N, d): the hidden layers
+            z = self.f_h[i](z)
+        g = self.embed_tasks(view)
+        if last.bias is None:
+            dot_t = (g @ (last.weight / scale)) @ z.transpose(1, 2)  # (B, M, N)
+        else:
+            wb = g @ (th.cat([last.weight, last.bias.unsqueeze(-1)], -1) / scale)  # (B, M, d + 1): [Wᵀg_j, b·g_j] / scale
+            dot_t = th.baddbmm(wb[..., -1:], wb[..., :-1], z.transpose(1, 2))
         return dot_t.transpose(1, 2)
 
 
