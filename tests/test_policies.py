@@ -284,7 +284,9 @@ def test_narrow_linear_matches_linear():
     fast = NarrowLinear(8, 64)
     ref = th.nn.Linear(8, 64)
     ref.load_state_dict(fast.state_dict())
-    x = th.randn(4, 30, 8)
+    x = th.randn(4, 300, 8)  # 1,200 rows: at least NarrowLinear.min_rows, so the reordered product is used
+    assert NarrowLinear.min_rows <= 1200 and "NarrowInputLinear" in type(fast(x).grad_fn).__name__
+    assert "NarrowInputLinear" not in type(fast(x[:1, :10]).grad_fn).__name__  # few rows: the plain layer
     grads = []
     for layer in (fast, ref):
         xi = x.clone().requires_grad_(True)

@@ -54,11 +54,17 @@ class NarrowLinear(nn.Linear):
 
     The same function and gradients; only the product that forms the weight gradient is reordered. For a (rows × 8)
     input and 64 outputs, MKL forms ∂yᵀx (autograd's order) about 7× slower on a CPU thread than (xᵀ∂y)ᵀ, and with
-    B·N = 6,400 entity rows per batch that product was one of the costliest of a gradient step.
+    B·N = 6,400 entity rows per batch that product was one of the costliest of a gradient step. Below
+    :attr:`min_rows` rows the plain layer is used: there the custom autograd function's Python overhead outweighs
+    the gain.
     """
 
+    #: Fewest input rows for which the reordered weight gradient is used.
+    min_rows = 1024
+
     def forward(self, x: th.Tensor) -> th.Tensor:
-        if th.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad):
+        rows = x.numel() // max(self.in_features, 1)
+        if rows >= self.min_rows and th.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad):
             return _NarrowInputLinear.apply(x, self.weight, self.bias)
         return nn.functional.linear(x, self.weight, self.bias)
 
