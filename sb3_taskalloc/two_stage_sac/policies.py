@@ -72,7 +72,7 @@ class SelectState:
         self.npick = th.zeros(B, M, device=task_of.device)
         self.covered = th.zeros(B, M, dtype=th.bool, device=task_of.device)
         self.rank = th.full((B, M, N), -1, dtype=th.long, device=task_of.device)  # step at which task j picked i
-        self.pc_own = th.gather(view.pair_cost, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
+        self.pc_own = own_column(view.pair_cost, task_of)  # (B, N)
         self.useful = useful_supply(view, task_of, self.rem)  # shared by the choices and the pointer's features
         self.choosable = choosable(view, task_of, self.avail, self.rem, self.useful)  # (B, N)
         self.active = view.task_mask & still_winnable(view, task_of, self.choosable, self.pc_own, self.rem, self.cost)
@@ -110,6 +110,15 @@ class SelectState:
     def kept(self) -> th.Tensor:
         """(B, M) tasks whose internal profit (reward if covered − Σ pair costs) is positive; others are abandoned."""
         return self.covered & (self.view.reward - self.cost > 0)
+
+
+def own_column(x: th.Tensor, task_of: th.Tensor) -> th.Tensor:
+    """(B, N) ``x[b, i, task_of[b, i]]``: each entity's entry for its own task (arbitrary where task_of < 0).
+
+    :param x: (B, N, M) per entity and task
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    """
+    return th.gather(x, 2, task_of.clamp_min(0).unsqueeze(-1)).squeeze(-1)
 
 
 def useful_supply(view: ObsView, task_of: th.Tensor, rem: th.Tensor) -> tuple[th.Tensor, th.Tensor]:

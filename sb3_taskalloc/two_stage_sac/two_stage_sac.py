@@ -26,11 +26,11 @@ from sb3_taskalloc.two_stage_sac.policies import (
     PreAssignActor,
     SelectCritic,
     Selector,
-    SelectState,
     TAMPolicy,
     TwinCritic,
     check_spaces,
     choosable,
+    own_column,
     select_features,
     still_winnable,
     useful_supply,
@@ -638,24 +638,23 @@ def _select_round_terms(
 
     Each entity is a candidate of one task, so the per-step distributions over a task's candidates are kept per
     entity, (T, B, N), and summed into their tasks (:class:`SegmentedCategorical`): no (T, B, M, N) tensor."""
-    st = SelectState(view, task_of)
-    rank = th.where(st.seg, pick_rank, -1)  # (B, M, N)
-    steps = int(rank.max().item()) + 1
+    cand = task_of >= 0
+    # (B, N): step at which the entity's own task picked it, −1 if never (or if it is no candidate)
+    rank_own = th.where(cand, own_column(pick_rank.transpose(1, 2), task_of), -1)
+    steps = int(rank_own.max().item()) + 1
     if steps <= 0:
         return {}
-    M = rank.shape[1]
+    M = pick_rank.shape[1]
+    pc_own = own_column(view.pair_cost, task_of)  # (B, N)
     seg = task_of.clamp_min(0)  # every tensor below is per entity (T, B, N) or per task (T, B, M): no (T, B, M, N)
-    t = th.arange(steps, device=rank.device)
-    tt = t.view(-1, 1, 1)
-    rank_own = rank.max(1).values  # (B, N): step at which the entity's task picked it, −1 if never
+    tt = th.arange(steps, device=rank_own.device).view(-1, 1, 1)
     pf = (rank_own == tt).float()  # (T, B, N): entity picked at step t (by its own task)
     valid = segment_sum(pf, seg, M) > 0  # (T, B, M): task j picks at step t
     sup = segment_sum(pf.unsqueeze(-1) * view.supply, seg, M, vector=True)  # (T, B, M, K) supply of the pick
-    pc = segment_sum(pf * st.pc_own, seg, M)  # (T, B, M) pair cost of the pick
+    pc = segment_sum(pf * pc_own, seg, M)  # (T, B, M) pair cost of the pick
     sup_cum, pc_cum, n_cum = sup.cumsum(0), pc.cumsum(0), valid.float().cumsum(0)
     rem = (view.demand - (sup_cum - sup)).clamp_min(0.0)  # before the pick
     rem_after = (view.demand - sup_cum).clamp_min(0.0)
-    cand = task_of >= 0
     avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
     avail_after = cand & ((rank_own < 0) | (rank_own > tt))
     useful = useful_supply(view, task_of, rem)  # shared by the choices and the pointer's features
@@ -663,10 +662,10 @@ def _select_round_terms(
     choices_after = choosable(view, task_of, avail_after, rem_after)
     mask = choices & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
     newly = valid & (rem_after <= COVER_TOL).all(-1)
-    done = valid & (newly | ~still_winnable(view, task_of, choices_after, st.pc_own, rem_after, pc_cum))
+    done = valid & (newly | ~still_winnable(view, task_of, choices_after, pc_own, rem_after, pc_cum))
     reward = valid.float() * (-pc + view.reward * newly.float())
 
-    task_state, dyn = select_features(view, task_of, st.pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful)
+    task_state, dyn = select_features(view, task_of, pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful)
     logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, task_of)
     dist = SegmentedCategorical(logits, mask, seg, M)
     qs = policy.select_critic(policy.select_critic.embed(view), task_state, dyn, task_of)  # (T, B, N) each
