@@ -154,21 +154,25 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step, split into the
-    gradient step and the stochastic decision; replay memory; and the gradient step on RBF scaled to fewer entities
-    (what a step costs apart from the entity count). On CUDA, also the GPU kernel time and the kernel launches per
-    gradient step (``torch.profiler``; ``None`` on the CPU)."""
+    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step (the median of three
+    blocks of ``learn``, each block recorded), split into the gradient step and the stochastic decision; replay memory;
+    and the gradient step on RBF scaled to fewer entities (what a step costs apart from the entity count). On CUDA, also
+    the GPU kernel time and the kernel launches per gradient step (``torch.profiler``; ``None`` on the CPU)."""
     import gymnasium as gym
 
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
 
     def measure(model: TwoStageSAC, device: str, steps: int, env: str, target: int | None = None) -> dict[str, Any]:
-        """One row: env steps/s of ``learn``, then the gradient step and the stochastic decision timed apart."""
+        """One row: env steps/s of ``learn`` (the median of ``blocks`` runs of ``steps`` steps), then the gradient step
+        and the stochastic decision timed apart."""
         model.learn(64)
-        t0 = time.perf_counter()
-        model.learn(steps, reset_num_timesteps=False)
-        rate = steps / (time.perf_counter() - t0)
+        rates = []
+        for _ in range(blocks):
+            t0 = time.perf_counter()
+            model.learn(steps, reset_num_timesteps=False)
+            rates.append(steps / (time.perf_counter() - t0))
+        rate = float(np.median(rates))
         reps = max(steps // 5, 4)
         _sync(device)
         t0 = time.perf_counter()
@@ -194,6 +198,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             "device": device,
             "env": env,
             "env_steps_per_s": rate,
+            "env_steps_per_s_blocks": [round(r, 2) for r in rates],
             "gradient_step_ms": grad_ms,
             "gpu_kernel_ms_per_gradient_step": kernel_ms,
             "kernel_launches_per_gradient_step": launches,
@@ -205,6 +210,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     devices = _devices(args)
     rows = []
     steps = 20 if args.quick else 100
+    blocks = 1 if args.quick else 3  # the median of three blocks: one block varied by ±10 % between runs here
     for device in devices:
         for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/EPT-v0", "TaskAlloc/MT-v0", "TaskAlloc/Almighty-v0"):
             if args.quick and env_id != "TaskAlloc/RBF-v0":

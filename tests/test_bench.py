@@ -34,6 +34,10 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
         for key in keys:
             if key.endswith(("_per_s", "_ms", "_GB_for_100k")):
                 assert row[key] > 0, (key, row)
+    if which == "train":  # --quick times one block of learn(), recorded (rounded) beside the rate
+        for row in rows:
+            (block,) = row["env_steps_per_s_blocks"]
+            assert abs(block - row["env_steps_per_s"]) <= 0.005
     assert f"## {which}" in capsys.readouterr().out  # the printed table
 
 
