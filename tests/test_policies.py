@@ -11,7 +11,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from envs.rendering import random_valid_action
 from sb3_taskalloc import TAMPolicy
 from sb3_taskalloc.common.torch_layers import parse_obs
-from sb3_taskalloc.two_stage_sac.policies import SelectState
+from sb3_taskalloc.two_stage_sac.policies import SelectState, select_features
 
 VARIANTS = {
     "full": {},
@@ -299,3 +299,42 @@ def test_narrow_linear_matches_linear():
     assert isinstance(mlp(8, 64, 64)[0], NarrowLinear) and type(mlp(64, 64, 64)[0]) is th.nn.Linear
     assert type(linear(7, 1)) is th.nn.Linear  # one output: nothing to gain
     assert list(fast.state_dict()) == ["weight", "bias"]
+
+
+@pytest.mark.parametrize("state_value", [False, True])
+def test_pointer_scores_equal_their_definition(state_value):
+    """``PointerHead`` (the task MLP's last layer folded into the entity side) scores u_i = d_i·e_j^t / √d + w·x_i^t
+    (+ b(e_j^t)) with d = entity MLP, e = task MLP, as defined, in value and in every parameter's gradient."""
+    from sb3_taskalloc.common.torch_layers import PointerHead
+
+    th.manual_seed(0)
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 5, seed=2)))
+    head = PointerHead(view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value)
+    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
+    st = SelectState(view, task_of)
+    task_state, dyn = select_features(
+        view, task_of, st.pc_own, st.rem.expand(3, -1, -1, -1), st.cost.expand(3, -1, -1), st.npick.expand(3, -1, -1)
+    )
+    weights = th.randn(3, *task_of.shape, dtype=th.float64)
+    own = task_of.clamp_min(0)
+
+    def reference():
+        d, e = head.entity(view.entity), head.task(task_state)  # (B, N, H), (T, B, M, H)
+        e_own = th.stack([e[:, b, own[b]] for b in range(own.shape[0])], 1)  # (T, B, N, H)
+        scores = (e_own * d).sum(-1) / head.scale + head.dyn(dyn).squeeze(-1)
+        if head.value is not None:
+            scores = scores + th.gather(head.value(e).squeeze(-1), -1, own.expand(3, -1, -1))
+        return scores
+
+    results = []
+    for fn in (lambda: head(head.embed_entities(view), task_state, dyn, task_of), reference):
+        head.zero_grad()
+        out = fn()
+        (out.double() * weights).sum().backward()
+        results.append((out.detach(), [p.grad.clone() for p in head.parameters() if p.grad is not None]))
+    (fast, fast_grads), (ref, ref_grads) = results
+    assert fast.shape == (3, *task_of.shape)
+    th.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+    assert len(fast_grads) == len(ref_grads) == len(list(head.parameters()))
+    for a, b in zip(fast_grads, ref_grads, strict=True):
+        th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
