@@ -165,7 +165,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
 
     def measure(model: TwoStageSAC, device: str, steps: int, env: str, target: int | None = None) -> dict[str, Any]:
         """One row: env steps/s of ``learn`` (the median of ``blocks`` runs of ``steps`` steps), then the gradient step
-        and the stochastic decision timed apart."""
+        and the stochastic decision timed apart (medians over single steps)."""
         model.learn(64)
         rates = []
         for _ in range(blocks):
@@ -174,16 +174,18 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             rates.append(steps / (time.perf_counter() - t0))
         rate = float(np.median(rates))
         reps = max(steps // 5, 4)
-        _sync(device)
-        t0 = time.perf_counter()
-        model.train(gradient_steps=reps, batch_size=64)
-        _sync(device)
-        grad_ms = (time.perf_counter() - t0) / reps * 1e3
-        t0 = time.perf_counter()
-        for _ in range(reps):
+
+        def gradient_step() -> None:
+            model.train(gradient_steps=1, batch_size=64)
+            _sync(device)
+
+        def decision() -> None:
             model._sample_action(learning_starts=0)
+            _sync(device)
+
         _sync(device)
-        decision_ms = (time.perf_counter() - t0) / reps * 1e3
+        grad_ms = _median_ms(gradient_step, reps, warmup=1)
+        decision_ms = _median_ms(decision, reps, warmup=1)
         kernel_ms = launches = None
         if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
             from torch.profiler import ProfilerActivity, profile

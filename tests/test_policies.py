@@ -303,8 +303,9 @@ def test_narrow_linear_matches_linear():
 
 @pytest.mark.parametrize("state_value", [False, True])
 def test_pointer_scores_equal_their_definition(state_value):
-    """``PointerHead`` (the task MLP's last layer folded into the entity side) scores u_i = d_i·e_j^t / √d + w·x_i^t
-    (+ b(e_j^t)) with d = entity MLP, e = task MLP, as defined, in value and in every parameter's gradient."""
+    """``PointerHead`` (one batched product over all tasks, then each entity's own column) scores
+    u_i = d_i·e_j^t / √d + w·x_i^t (+ b(e_j^t)) with d = entity MLP, e = task MLP, as defined, in value and in every
+    parameter's gradient."""
     from sb3_taskalloc.common.torch_layers import PointerHead
 
     th.manual_seed(0)

@@ -464,11 +464,6 @@ class PointerHead(nn.Module):
     This dot-product pointer replaces the paper's additive vᵀ tanh(W1 e + W2 d): it needs no (batch × entities ×
     hidden) tensor per decoding step, which makes training an order of magnitude cheaper on CPUs.
 
-    Computed reassociated: with e_j^t = W y_j^t + c (y: the task MLP's last hidden layer), d_i·e_j^t =
-    (Wᵀd_i)·y_j^t + d_i·c and b(e) = (Wᵀv)·y + v·c + b₀ for the baseline v·e + b₀, so the task MLP's last layer is
-    folded into the entity side (:meth:`embed_entities`), which has fewer rows than the task states of every decoding
-    step, and is applied once per decision instead of once per pick.
-
     :param entity_dim: entity feature size
     :param n_resources: K
     :param hidden_dim: width d
@@ -500,17 +495,10 @@ class PointerHead(nn.Module):
         self.skip_dot = self.value is None and zero_output(self.task)
 
     def embed_entities(self, view: ObsView) -> th.Tensor:
-        """(B, N, H + 1) entity embeddings projected on the task side, [Wᵀd_i, d_i·c] (see the class docstring; an
-        empty (B, N, 0) tensor when :attr:`skip_dot` makes them unused)."""
+        """(B, N, H) entity embeddings d_i (an empty (B, N, 0) tensor when :attr:`skip_dot` makes them unused)."""
         if self.skip_dot:
             return view.entity.new_zeros(*view.entity.shape[:-1], 0)
-        a = hidden(self.entity, view.entity)
-        out, task_out = self.entity[-1], self.task[-1]  # d = U a + u, e = W y + c
-        assert isinstance(out, nn.Linear) and isinstance(task_out, nn.Linear)
-        # [Wᵀd, d·c] = a·[UᵀW, Uᵀc] + [uᵀW, u·c]: one (H, H + 1) product of the two layers, then one GEMM.
-        weight = out.weight.t() @ th.cat([task_out.weight, task_out.bias.unsqueeze(-1)], -1)
-        bias = out.bias @ th.cat([task_out.weight, task_out.bias.unsqueeze(-1)], -1)
-        return nn.functional.linear(a, weight.t(), bias)
+        return self.entity(view.entity)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         # Models saved before the unit-cost feature have a 6-column read-out: its new column starts at 0.
@@ -521,26 +509,20 @@ class PointerHead(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
-        """:param d: (B, N, H + 1) entity embeddings of :meth:`embed_entities`
-        :param task_state: (..., B, M, S) task states (optional leading time dims)
-        :param dyn: (..., B, N, SELECT_DYN)
-        :param task_of: (B, N) task whose candidate entity i is (−1: none)
+        """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
+        dims); :param dyn: (..., B, N, SELECT_DYN); :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
         if self.skip_dot:
             return self.dyn(dyn).squeeze(-1)
-        y = hidden(self.task, task_state)  # the task MLP's last layer is folded into d
-        lead = y.shape[:-3]
-        B, M, H = y.shape[-3:]
-        # (Wᵀd_i)·y_j for every pair in one batched matmul over B (no broadcast copies), then each entity's own column.
-        flat = y.reshape(-1, B, M, H).permute(1, 3, 0, 2).reshape(B, H, -1)  # (B, H, T·M)
-        flat = th.cat([flat, flat.new_ones(B, 1, flat.shape[-1])], 1)  # [y_j^t, 1]: the product adds d_i·c
-        pairs = (d @ flat).view(B, d.shape[1], -1, M).permute(2, 0, 1, 3).reshape(*lead, B, d.shape[1], M)  # d_i·e_j^t
+        e = self.task(task_state)
+        lead = e.shape[:-3]
+        B, M, H = e.shape[-3:]
+        # d_i·e_j for every pair in one batched matmul over B (no broadcast copies), then each entity's own column.
+        flat = e.reshape(-1, B, M, H).permute(1, 3, 0, 2).reshape(B, H, -1)  # (B, H, T·M)
+        pairs = (d @ flat).view(B, d.shape[1], -1, M).permute(2, 0, 1, 3).reshape(*lead, B, d.shape[1], M)
         idx = task_of.clamp_min(0).unsqueeze(-1).expand(*lead, -1, -1, 1)
         scores = th.gather(pairs, -1, idx).squeeze(-1) / self.scale + self.dyn(dyn).squeeze(-1)
         if self.value is not None:
-            task_out = self.task[-1]  # b(e) = v·(W y + c) + b₀ = (Wᵀv)·y + v·c + b₀
-            assert isinstance(task_out, nn.Linear)
-            weight, bias = self.value.weight @ task_out.weight, self.value.weight @ task_out.bias + self.value.bias
-            values = nn.functional.linear(y, weight, bias).squeeze(-1)  # (..., B, M)
+            values = self.value(e).squeeze(-1)  # (..., B, M)
             scores = scores + th.gather(values, -1, task_of.clamp_min(0).expand(*lead, -1, -1))
         return scores
