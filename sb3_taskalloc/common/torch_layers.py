@@ -84,7 +84,7 @@ def mlp(in_dim: int, hidden: int, out_dim: int, activation_fn: type[nn.Module] =
     return nn.Sequential(*layers)
 
 
-def hidden(net: nn.Sequential, x: th.Tensor) -> th.Tensor:
+def last_hidden(net: nn.Sequential, x: th.Tensor) -> th.Tensor:
     """``net`` without its output layer applied to ``x``: the last hidden layer of an :func:`mlp`."""
     for layer in itertools.islice(net, len(net) - 1):
         x = layer(x)
@@ -228,7 +228,7 @@ class TAMEncoder(nn.Module):
         if self.entity_blocks or not isinstance(last, nn.Linear):
             h, g = self(view)
             return h @ g.transpose(1, 2) / scale
-        z = hidden(self.f_h, view.entity)  # (B, N, d)
+        z = last_hidden(self.f_h, view.entity)  # (B, N, d)
         g = self.embed_tasks(view)
         if last.bias is None:
             dot_t = (g @ (last.weight / scale)) @ z.transpose(1, 2)  # (B, M, N)
