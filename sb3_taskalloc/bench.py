@@ -183,8 +183,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             model._sample_action(learning_starts=0)
             _sync(device)
 
-        _sync(device)
-        grad_ms = _median_ms(gradient_step, reps, warmup=1)
+        grad_ms = _median_ms(gradient_step, reps, warmup=1)  # the warm-up step also waits for learn()'s queued work
         decision_ms = _median_ms(decision, reps, warmup=1)
         kernel_ms = launches = None
         if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch

@@ -225,17 +225,12 @@ class TAMEncoder(nn.Module):
         (the same value, reassociated; N ≫ M in the allocation problems), and the product is formed as (B, M, N),
         the layout that is fastest to multiply and differentiate on CPUs."""
         last = self.f_h[-1]
-        if self.entity_blocks or not isinstance(last, nn.Linear):
+        if self.entity_blocks or not isinstance(last, nn.Linear) or last.bias is None:
             h, g = self(view)
             return h @ g.transpose(1, 2) / scale
         z = last_hidden(self.f_h, view.entity)  # (B, N, d)
-        g = self.embed_tasks(view)
-        if last.bias is None:
-            dot_t = (g @ (last.weight / scale)) @ z.transpose(1, 2)  # (B, M, N)
-        else:
-            wb = g @ (th.cat([last.weight, last.bias.unsqueeze(-1)], -1) / scale)  # (B, M, d + 1): [Wᵀg_j, b·g_j] / scale
-            dot_t = th.baddbmm(wb[..., -1:], wb[..., :-1], z.transpose(1, 2))
-        return dot_t.transpose(1, 2)
+        wb = self.embed_tasks(view) @ (th.cat([last.weight, last.bias.unsqueeze(-1)], -1) / scale)  # [Wᵀg_j, b·g_j] / scale
+        return th.baddbmm(wb[..., -1:], wb[..., :-1], z.transpose(1, 2)).transpose(1, 2)  # formed as (B, M, N)
 
 
 class PairScorer(nn.Module):
