@@ -185,6 +185,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
 
         grad_ms = _median_ms(gradient_step, reps, warmup=1)  # the warm-up step also waits for learn()'s queued work
         decision_ms = _median_ms(decision, reps, warmup=1)
+        amix_ms = _amix_ms(model, device, reps)
         kernel_ms = launches = None
         if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
             from torch.profiler import ProfilerActivity, profile
@@ -204,6 +205,9 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             "gpu_kernel_ms_per_gradient_step": kernel_ms,
             "kernel_launches_per_gradient_step": launches,
             "decision_ms": decision_ms,
+            "amix_ms_per_gradient_step": amix_ms,
+            # What the decision and AMIX's attention alone would allow, with everything else in a step free.
+            "env_steps_per_s_bound": 1e3 / (decision_ms + amix_ms),
             "replay_GB_for_100k": model.replay_buffer.nbytes_per_transition() * 100_000 / 1e9,
             "target_steps_per_s": target,
         }
@@ -223,6 +227,30 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
             rows.append(measure(model, device, steps // 2, f"RBF-v0, first {n} entities"))
     return rows
+
+
+def _amix_ms(model: Any, device: str, reps: int) -> float:
+    """Median time of the AMIX work that every stage-1 gradient step must do (implementation details 1–3): the twin
+    target mixers' self-attention hypernetworks on the next states (no gradient) and the twin online mixers' forward
+    and backward passes, on a batch of the size of the training step. The rest of the step (encoders, actor, select
+    stage) is left out, so this is a lower bound on the gradient step and ``1000 / (decision + this)`` an upper bound
+    on the env steps/s that this architecture reaches on the device."""
+    import torch as th
+
+    data = model.replay_buffer.sample(64)
+    view, next_view = model.policy.parse(data.observations), model.policy.parse(data.next_observations)
+    q_i = th.ones(view.entity.shape[:2], device=view.entity.device)  # per-entity values: the mixers' work ignores them
+
+    def amix() -> None:
+        with th.no_grad():
+            for critic in model.critic_target.q_networks:
+                critic.mixer.mix(q_i, critic.mixer.context(next_view))
+        th.stack([critic.mixer.mix(q_i, critic.mixer.context(view)) for critic in model.critic.q_networks]).sum().backward()
+        _sync(device)
+
+    ms = _median_ms(amix, reps, warmup=1)
+    model.critic.optimizer.zero_grad()  # the timed backward passes leave no gradient behind
+    return ms
 
 
 def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:

@@ -38,6 +38,9 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
         for row in rows:
             (block,) = row["env_steps_per_s_blocks"]
             assert abs(block - row["env_steps_per_s"]) <= 0.005
+            # AMIX's share of a gradient step, timed alone, and the rate it and the decision would allow
+            assert 0 < row["amix_ms_per_gradient_step"] < row["gradient_step_ms"]
+            assert row["env_steps_per_s_bound"] == pytest.approx(1e3 / (row["decision_ms"] + row["amix_ms_per_gradient_step"]))
     assert f"## {which}" in capsys.readouterr().out  # the printed table
 
 
