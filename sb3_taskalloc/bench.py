@@ -15,11 +15,14 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from sb3_taskalloc import TwoStageSAC
 
 BenchFn = Callable[[argparse.Namespace], list[dict[str, Any]]]
 #: The profiler's names of the host calls that launch a CUDA kernel.
@@ -229,7 +232,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
-def _amix_ms(model: Any, device: str, reps: int) -> float:
+def _amix_ms(model: TwoStageSAC, device: str, reps: int) -> float:
     """Median time of the AMIX work that every stage-1 gradient step must do (implementation details 1–3): the twin
     target mixers' self-attention hypernetworks on the next states (no gradient) and the twin online mixers' forward
     and backward passes, on a batch of the size of the training step. The rest of the step (encoders, actor, select
@@ -237,19 +240,21 @@ def _amix_ms(model: Any, device: str, reps: int) -> float:
     on the env steps/s that this architecture reaches on the device."""
     import torch as th
 
-    data = model.replay_buffer.sample(64)
+    online, target = model.critic, model.critic_target
+    assert online is not None and target is not None, "the train benchmark times TwoStageSAC with pre-assignment"
+    data = model.replay_buffer.sample(model.batch_size)
     view, next_view = model.policy.parse(data.observations), model.policy.parse(data.next_observations)
     q_i = th.ones(view.entity.shape[:2], device=view.entity.device)  # per-entity values: the mixers' work ignores them
 
     def amix() -> None:
         with th.no_grad():
-            for critic in model.critic_target.q_networks:
-                critic.mixer.mix(q_i, critic.mixer.context(next_view))
-        th.stack([critic.mixer.mix(q_i, critic.mixer.context(view)) for critic in model.critic.q_networks]).sum().backward()
+            for critic in target.q_networks:
+                critic.mixer(q_i, next_view)  # type: ignore[operator]
+        th.stack([critic.mixer(q_i, view) for critic in online.q_networks]).sum().backward()  # type: ignore[operator]
         _sync(device)
 
     ms = _median_ms(amix, reps, warmup=1)
-    model.critic.optimizer.zero_grad()  # the timed backward passes leave no gradient behind
+    online.optimizer.zero_grad()  # the timed backward passes leave no gradient behind
     return ms
 
 
