@@ -11,7 +11,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from envs.rendering import random_valid_action
 from sb3_taskalloc import TAMPolicy
 from sb3_taskalloc.common.torch_layers import parse_obs
-from sb3_taskalloc.two_stage_sac.policies import SelectState, select_features
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState, select_features
 
 VARIANTS = {
     "full": {},
@@ -206,7 +206,7 @@ def test_heuristic_init_beats_default_init_untrained():
 
 def test_frozen_priors_skip_only_zero_dot_products():
     """The rule-initialised frozen priors skip their dot products (task embeddings identically 0) and score exactly as
-    the full computation; priors with non-zero task embeddings (an older save, or ``heuristic_init=False``) do not."""
+    the full computation; priors with non-zero task embeddings (a loaded state, or ``heuristic_init=False``) do not."""
     th.manual_seed(0)
     env = gym.make("TaskAlloc/RBF-v0")
     policy = make_policy(env)
@@ -224,9 +224,9 @@ def test_frozen_priors_skip_only_zero_dot_products():
     for a, b in zip(fast, full, strict=True):
         th.testing.assert_close(a, b, rtol=0, atol=0)
     # A state whose priors have non-zero task embeddings turns the shortcut off when loaded.
-    state = {k: v for k, v in policy.state_dict().items() if not k.startswith(("actor_prior.", "selector_prior."))}
-    state["actor.scorer.encoder.f_g.2.bias"] = th.ones_like(state["actor.scorer.encoder.f_g.2.bias"])
-    state["selector.head.task.2.bias"] = th.ones_like(state["selector.head.task.2.bias"])
+    state = dict(policy.state_dict())
+    state["actor_prior.scorer.encoder.f_g.2.bias"] = th.ones_like(state["actor_prior.scorer.encoder.f_g.2.bias"])
+    state["selector_prior.head.task.2.bias"] = th.ones_like(state["selector_prior.head.task.2.bias"])
     policy.load_state_dict(state)
     assert not policy.actor_prior.scorer.skip_dot and not policy.selector_prior.head.skip_dot
     assert not make_policy(env, heuristic_init=False).selector_prior.head.skip_dot

@@ -13,9 +13,11 @@ from torch.nn import functional as F
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.baselines import GreedyAllocator
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical
-from sb3_taskalloc.common.torch_layers import AMIXMixer, ObsView, parse_obs
-from sb3_taskalloc.two_stage_sac.policies import SelectState
-from sb3_taskalloc.two_stage_sac.two_stage_sac import actor_loss_of, foreach_polyak_update, preassign_losses, select_losses
+from sb3_taskalloc.common.mixers import AMIXMixer
+from sb3_taskalloc.common.torch_layers import ObsView, parse_obs
+from sb3_taskalloc.two_stage_sac import losses
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState
+from sb3_taskalloc.two_stage_sac.two_stage_sac import foreach_polyak_update
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +37,33 @@ def model() -> TwoStageSAC:
     return m
 
 
+def preassign_critic_loss(model: TwoStageSAC, view: ObsView, next_view: ObsView, data, alpha) -> losses.PreAssignCriticLoss:
+    return losses.preassign_critic_loss(
+        model.actor, model.critic, model.critic_target, view, next_view, data.rewards[:, 0], data.dones[:, 0],
+        data.candidates, model.gamma, alpha,
+    )  # fmt: skip
+
+
+def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha, dist=None, prior_coef: float = 0.0) -> th.Tensor:
+    dist = model.actor(view) if dist is None else dist
+    contexts = model.critic.contexts(view)
+    return losses.preassign_actor_loss(dist, model.critic, contexts, view, alpha, model.policy.actor_prior, prior_coef)
+
+
+def select_losses(policy, view, cand, rank, alpha, ratio, prior_coef: float = 0.0) -> losses.SelectLosses:
+    out = losses.select_losses(
+        policy.selector, policy.select_critic, policy.select_critic_target, view, cand, rank, policy.preassign, alpha,
+        ratio, policy.selector_prior, prior_coef,
+    )  # fmt: skip
+    assert out is not None
+    return out
+
+
 def test_preassign_critic_target_and_losses(model):
     data = model.replay_buffer.sample(16)
     view, next_view = parse_obs(data.observations), parse_obs(data.next_observations)
-    out = preassign_losses(model, view, next_view, data)
     alpha = th.exp(model.log_ent_coef.detach())
+    out = preassign_critic_loss(model, view, next_view, data, alpha)
     # Closed form: y = r + γ(1 − d)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α Σ_i H_i(s')]
     with th.no_grad():
         pi_next = model.actor(next_view)
@@ -49,16 +73,13 @@ def test_preassign_critic_target_and_losses(model):
             mixed.append(critic.mixer(q_i, next_view))
         h_next = -(pi_next.probs * th.log(pi_next.probs.clamp_min(1e-30))).sum((1, 2))
         y = data.rewards[:, 0] + model.gamma * (1 - data.dones[:, 0]) * (th.minimum(*mixed) + alpha * h_next)
-    th.testing.assert_close(out["target_q"], y, atol=1e-4, rtol=1e-4)
+    th.testing.assert_close(out.target_q, y, atol=1e-4, rtol=1e-4)
     c = data.candidates.transpose(1, 2).float()
     expected = 0.0
     for critic in model.critic.q_networks:
         q_tot = critic.mixer((critic.scorer(view) * c).sum(-1), view)
         expected = expected + 0.5 * ((q_tot - y) ** 2).mean()
-    th.testing.assert_close(out["critic_loss"], expected, atol=1e-4, rtol=1e-4)
-    critic_only = preassign_losses(model, view, next_view, data, actor_terms=False)  # the critic warm-up's call
-    th.testing.assert_close(critic_only["critic_loss"], out["critic_loss"], rtol=0, atol=0)
-    assert critic_only["dist"] is None and critic_only["mean_entropy"] is None
+    th.testing.assert_close(out.loss, expected, atol=1e-4, rtol=1e-4)
     # Actor: −α H(s) − min_k AMIX^k(Σ_j π Q^k)
     pi = model.actor(view)
     h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))
@@ -91,21 +112,23 @@ def test_preassign_critic_target_and_losses(model):
         prior = model.policy.actor_prior(view)
         kl = (pi.probs * (th.log(pi.probs.clamp_min(1e-30)) - th.log(prior.probs.clamp_min(1e-30)))).sum((1, 2))
         assert kl.max() > 1e-3, "the actor has not moved from its initial rule"
-        model.prior_coef = 0.7
         th.testing.assert_close(
-            actor_loss_of(model, view, alpha), (-alpha * h - th.minimum(*mixed_pi) + 0.7 * kl).mean(), atol=1e-4, rtol=1e-4
+            actor_loss_of(model, view, alpha, prior_coef=0.7),
+            (-alpha * h - th.minimum(*mixed_pi) + 0.7 * kl).mean(),
+            atol=1e-4,
+            rtol=1e-4,
         )
     finally:
-        model.prior_coef = 0.0
         model.actor.load_state_dict(saved)
     pi = model.actor(view)
     h = -(pi.probs * th.log(pi.probs.clamp_min(1e-30))).sum((1, 2))
     # Temperature statistics: mean per-entity entropy and ratio × log(#open tasks).
     free = view.assignable
     has = free.any(1)
-    th.testing.assert_close(out["mean_entropy"], (h / free.sum(1).clamp_min(1))[has], atol=1e-5, rtol=1e-5)
+    stats = losses.preassign_entropy(pi, view, model.target_entropy_ratio)
+    th.testing.assert_close(stats.entropy, (h / free.sum(1).clamp_min(1))[has], atol=1e-5, rtol=1e-5)
     th.testing.assert_close(
-        out["target_entropy"], (model.target_entropy_ratio * th.log(view.task_mask.sum(1).float()))[has], atol=1e-6, rtol=1e-6
+        stats.target, (model.target_entropy_ratio * th.log(view.task_mask.sum(1).float()))[has], atol=1e-6, rtol=1e-6
     )
 
 
@@ -166,7 +189,7 @@ def test_select_losses_match_sequential_closed_form():
     rank = th.tensor([[[0, 1, -1]]])  # picks entity 0, then entity 1: covered at step 1
     alpha = th.tensor(0.2)
     out = select_losses(policy, view, cand, rank, alpha, 0.5)
-    assert out["n"] == 2
+    assert out.n == 2
     # Sequential re-derivation with the inference-time state machine.
     task_of = th.zeros(1, 3, dtype=th.long)
     st = SelectState(view, task_of)
@@ -187,11 +210,11 @@ def test_select_losses_match_sequential_closed_form():
         assert bool(done[0, 0]) == (t == 1)
     assert rewards[0].item() == -1.0 and rewards[1].item() == pytest.approx(9.0)  # −cost; −cost + reward on covering
     y = th.stack([rewards[0] + values[1], rewards[1]])  # γ = 1, done after the covering pick
-    th.testing.assert_close(out["target"], y.detach(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.target, y.detach(), atol=1e-5, rtol=1e-5)
     expected = sum(0.5 * F.mse_loss(th.stack([q_sa[0][k], q_sa[1][k]]), y.detach()) for k in range(2))
-    th.testing.assert_close(out["critic_loss"], expected, atol=1e-5, rtol=1e-5)
-    th.testing.assert_close(out["actor_loss"], th.stack(actor_terms).mean(), atol=1e-5, rtol=1e-5)
-    th.testing.assert_close(out["target_entropy"], 0.5 * th.log(th.tensor([3.0, 2.0])))
+    th.testing.assert_close(out.critic_loss, expected, atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.actor_loss, th.stack(actor_terms).mean(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.target_entropy, 0.5 * th.log(th.tensor([3.0, 2.0])))
     # Prior term: + β KL(π ‖ π₀) per transition, π₀ from the frozen initial pointer (here moved away from it first).
     with th.no_grad():
         for param in policy.selector.parameters():
@@ -210,10 +233,8 @@ def test_select_losses_match_sequential_closed_form():
         kls.append((p * (th.log(p.clamp_min(1e-30)) - th.log(q.clamp_min(1e-30)))).sum())
         st.advance(th.tensor([[pick]]), th.tensor([[True]]))
     assert max(kl.item() for kl in kls) > 1e-3
-    th.testing.assert_close(
-        out_prior["actor_loss"], out_plain["actor_loss"] + 2.0 * th.stack(kls).mean(), atol=1e-5, rtol=1e-5
-    )
-    th.testing.assert_close(out_prior["critic_loss"], out_plain["critic_loss"])
+    th.testing.assert_close(out_prior.actor_loss, out_plain.actor_loss + 2.0 * th.stack(kls).mean(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out_prior.critic_loss, out_plain.critic_loss)
 
 
 def test_abandoned_when_unprofitable():
@@ -360,7 +381,7 @@ def test_select_losses_match_sequential_decoding_on_many_tasks():
         dec = policy.decide(view, deterministic=False)
     alpha = th.tensor(0.3)
     out = select_losses(policy, view, dec.candidates, dec.pick_rank, alpha, 0.5)
-    assert out["n"] > 8
+    assert out.n > 8
     c = th.where(dec.candidates.any(1), dec.candidates.float().argmax(1), -1)
     B, M, N = dec.pick_rank.shape
     st = SelectState(view, c)
@@ -392,12 +413,12 @@ def test_select_losses_match_sequential_decoding_on_many_tasks():
     valid = stk["valid"]
     v_next = th.cat([stk["v"][1:], th.zeros_like(stk["v"][:1])])
     y = (stk["r"] + (1 - stk["done"].float()) * v_next)[valid]
-    th.testing.assert_close(out["target"], y.detach(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.target, y.detach(), atol=1e-5, rtol=1e-5)
     expected = 0.5 * (F.mse_loss(stk["q1"][valid], y.detach()) + F.mse_loss(stk["q2"][valid], y.detach()))
-    th.testing.assert_close(out["critic_loss"], expected, atol=1e-5, rtol=1e-5)
-    th.testing.assert_close(out["actor_loss"], stk["actor"][valid].mean(), atol=1e-5, rtol=1e-5)
-    th.testing.assert_close(out["entropy"], stk["h"][valid], atol=1e-5, rtol=1e-5)
-    th.testing.assert_close(out["target_entropy"], 0.5 * th.log(stk["n"][valid]), atol=1e-6, rtol=1e-6)
+    th.testing.assert_close(out.critic_loss, expected, atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.actor_loss, stk["actor"][valid].mean(), atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.entropy, stk["h"][valid], atol=1e-5, rtol=1e-5)
+    th.testing.assert_close(out.target_entropy, 0.5 * th.log(stk["n"][valid]), atol=1e-6, rtol=1e-6)
 
 
 def test_foreach_polyak_update_equals_sb3():

@@ -1,6 +1,8 @@
-"""Networks of the two-stage method: TAM encoder, pair features, AMIX mixer, pointer head (DESIGN §5).
+"""Building blocks of the two-stage method: input normalisation, the TAM encoder and scorers, the pointer head.
 
-All modules take padded, masked batches and never produce NaN for all-masked rows.
+All modules take padded, masked batches and never produce NaN for all-masked rows. Every module that scores or mixes
+declares ``size_agnostic``: whether it accepts any number of entities and tasks (a model transfers to another size only
+when all of its modules do).
 """
 
 from __future__ import annotations
@@ -54,10 +56,9 @@ class NarrowLinear(nn.Linear):
     """:class:`torch.nn.Linear` for few input features (the raw entity and task features) applied to many rows.
 
     The same function and gradients; only the product that forms the weight gradient is reordered. For a (rows × 8)
-    input and 64 outputs, MKL forms ∂yᵀx (autograd's order) about 7× slower on a CPU thread than (xᵀ∂y)ᵀ, and with
-    B·N = 6,400 entity rows per batch that product was one of the costliest of a gradient step. Below
-    :attr:`min_rows` rows the plain layer is used: there the custom autograd function's Python overhead outweighs
-    the gain.
+    input and 64 outputs, MKL forms ∂yᵀx (autograd's order) about 7× slower on a CPU thread than (xᵀ∂y)ᵀ, and a batch
+    holds B·N entity rows (6,400 on RBF). Below :attr:`min_rows` rows the plain layer is used: there the custom autograd
+    function's Python overhead outweighs the gain.
     """
 
     #: Fewest input rows for which the reordered weight gradient is used.
@@ -92,7 +93,7 @@ def last_hidden(net: nn.Sequential, x: th.Tensor) -> th.Tensor:
 
 
 class ObsView(NamedTuple):
-    """Typed view of a batch of observations (DESIGN §3), with normalised features and boolean masks."""
+    """Typed view of a batch of ``TaskAlloc`` observations, with normalised features and boolean masks."""
 
     entity: th.Tensor  # (B, N, Fe) symlog features
     task: th.Tensor  # (B, M, Ft) symlog features
@@ -145,8 +146,8 @@ def pair_basis(pair_cost: th.Tensor, cover: th.Tensor, reward: th.Tensor) -> th.
     """(B, N, M, PAIR_FEATURES) fixed nonlinear features of each (entity, task) pair, computed once per observation
     and shared by every scorer, which weighs them linearly: symlog pair cost, coverage share, symlog margin
     m = symlog(reward − pair cost), its positive part relu(m), and whether the entity alone covers the task.
-    A fixed basis with a learned linear read-out instead of a small MLP per scorer: the MLP's hidden layer over every
-    pair of every batch row dominated the cost of a training step."""
+    A fixed basis with a learned linear read-out instead of a small MLP per scorer: an MLP's hidden layer over every
+    pair of every batch row would dominate the cost of a training step."""
     margin = symlog(reward.unsqueeze(1) - pair_cost)
     return th.stack([symlog(pair_cost), cover, margin, th.relu(margin), (cover >= 1 - 1e-6).float()], dim=-1)
 
@@ -246,6 +247,8 @@ class PairScorer(nn.Module):
     :param activation_fn: activation of the MLPs
     """
 
+    size_agnostic = True
+
     def __init__(
         self,
         entity_dim: int,
@@ -280,7 +283,7 @@ class PairScorer(nn.Module):
         return scores
 
 
-class _FlatNet(nn.Module):
+class FlatNet(nn.Module):
     """MLP over flattened padded entities, tasks and one (N, M) pair tensor: the size-specific ablations."""
 
     size_agnostic = False
@@ -304,7 +307,7 @@ class _FlatNet(nn.Module):
         return self.net(th.cat([view.entity.flatten(1), view.task.flatten(1), pair.flatten(1)], dim=1))
 
 
-class FlatScorer(_FlatNet):
+class FlatScorer(FlatNet):
     """The "W/o TAM" ablation: one MLP over the flattened padded inputs (and symlog pair costs) → N·M scores.
 
     :param n_entities: padded entity count N
@@ -324,122 +327,6 @@ class FlatScorer(_FlatNet):
 
     def forward(self, view: ObsView) -> th.Tensor:
         return self.flat_forward(view, symlog(view.pair_cost)).view(-1, self.n_entities, self.n_tasks)
-
-
-class MixContext(NamedTuple):
-    """Action-independent tensors of :class:`AMIXMixer` for a batch of states (reused by the actor loss)."""
-
-    mask: th.Tensor  # (B, N) entities that are mixed (free, with an open task)
-    att: th.Tensor  # (B, N, N) SHN attention
-    v: th.Tensor  # (B, N, H) SHN values
-    weights: th.Tensor | None  # (B, N, H) |A V| when monotonic
-    bias: th.Tensor  # (B, H) hyper-bias
-
-    def detach(self) -> MixContext:
-        weights = None if self.weights is None else self.weights.detach()
-        return MixContext(self.mask, self.att.detach(), self.v.detach(), weights, self.bias.detach())
-
-
-class AMIXMixer(nn.Module):
-    """Attention-hypernetwork mixer (AMIX with its self-attention hypernetwork SHN).
-
-    SHN: X = entity features ⊙ free mask; K = k(X), Q = q(X) (linear, ``attention_dim``), V = v(X) (linear; the
-    published code used 2-layer MLPs, linear maps keep the mixer cheap for hundreds of entities);
-    A = softmax(K Qᵀ / √d) over free entities; one weight vector per entity w_i = (A V)_i. Hyper-bias
-    b = MLP(mean of present entities' features, mean of open tasks' features) gives the state value when no entity is
-    free. hidden = ReLU(Σ_i Q_i w_i + b),
-    Q_tot = MLP(hidden). Masked entities contribute nothing. ``monotonic``: |w_i| and a non-negative output layer
-    (QMIX-style monotonic mixing).
-
-    :param entity_dim: entity feature size
-    :param task_dim: task feature size
-    :param hidden_dim: hypernetwork width
-    :param monotonic: constrain ∂Q_tot/∂Q_i ≥ 0
-    :param hyper_bias: state-dependent bias (else a learned constant)
-    :param activation_fn: activation
-    """
-
-    size_agnostic = True
-
-    def __init__(
-        self,
-        entity_dim: int,
-        task_dim: int,
-        hidden_dim: int = 64,
-        monotonic: bool = False,
-        hyper_bias: bool = True,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        attention_dim: int = 16,
-    ) -> None:
-        super().__init__()
-        self.k = linear(entity_dim, attention_dim)
-        self.q = linear(entity_dim, attention_dim)
-        self.v = linear(entity_dim, hidden_dim)
-        self.attention_dim = attention_dim
-        self.monotonic = monotonic
-        self.bias: nn.Module | None = mlp(entity_dim + task_dim, hidden_dim, hidden_dim, activation_fn) if hyper_bias else None
-        self.const_bias = nn.Parameter(th.zeros(hidden_dim))
-        if monotonic:
-            self.out_w = nn.Parameter(th.rand(hidden_dim) / hidden_dim)
-            self.out_b = nn.Parameter(th.zeros(1))
-        else:
-            self.out = mlp(hidden_dim, hidden_dim, 1, activation_fn)
-
-    def context(self, view: ObsView) -> MixContext:
-        """The action-independent part of the mixer for a batch of states: attention, values and hyper-bias."""
-        mask = view.assignable
-        x = view.entity * mask.unsqueeze(-1)
-        k, q, v = self.k(x), self.q(x), self.v(x)
-        # K Qᵀ/√d plus the additive key mask in one batched GEMM (no separate (B, N, N) pass for the scale or the mask).
-        key_bias = ((~mask).float() * NEG).unsqueeze(1)  # (B, 1, N)
-        att = th.softmax(th.baddbmm(key_bias, k, q.transpose(1, 2), alpha=1 / math.sqrt(self.attention_dim)), dim=-1)
-        bias = self.const_bias.expand(mask.shape[0], -1)
-        if self.bias is not None:
-            pres = view.present.unsqueeze(-1).float()
-            tmask = view.task_mask.unsqueeze(-1).float()
-            ent_mean = (view.entity * pres).sum(1) / pres.sum(1).clamp_min(1)
-            task_mean = (view.task * tmask).sum(1) / tmask.sum(1).clamp_min(1)
-            bias = bias + self.bias(th.cat([ent_mean, task_mean], -1))
-        if self.monotonic:
-            return MixContext(mask, att, v, (att @ v).abs(), bias)  # one hyper-weight vector per entity
-        return MixContext(mask, att, v, None, bias)
-
-    def mix(self, q_i: th.Tensor, ctx: MixContext) -> th.Tensor:
-        """:param q_i: (B, N) per-entity values; :param ctx: :meth:`context` of the states; :return: (B,) Q_tot"""
-        q_i = (q_i * ctx.mask).unsqueeze(1)  # (B, 1, N)
-        # Σ_i Q_i (A V)_i, computed as (Qᵀ A) V without monotonicity: O(N²) instead of O(N²H).
-        mixed = (q_i @ ctx.weights if ctx.weights is not None else (q_i @ ctx.att) @ ctx.v).squeeze(1)
-        hidden = th.relu(mixed + ctx.bias)
-        if self.monotonic:
-            return hidden @ self.out_w.abs() + self.out_b
-        return self.out(hidden).squeeze(-1)
-
-    def forward(self, q_i: th.Tensor, view: ObsView) -> th.Tensor:
-        """:param q_i: (B, N) per-entity values; :return: (B,) Q_tot"""
-        return self.mix(q_i, self.context(view))
-
-
-class GlobalMixer(_FlatNet):
-    """The "W/o AMIX" ablation: one MLP over flattened tasks, entities and the (one-hot or expected) assignment.
-
-    :param n_entities: padded entity count N
-    :param n_tasks: padded task count M
-    :param entity_dim: entity feature size
-    :param task_dim: task feature size
-    :param hidden_dim: hidden width
-    :param activation_fn: activation
-    """
-
-    name = 'mixer="global"'
-
-    def __init__(
-        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
-    ) -> None:
-        super().__init__(n_entities, n_tasks, entity_dim, task_dim, 1, hidden_dim, activation_fn)
-
-    def forward(self, assign: th.Tensor, view: ObsView) -> th.Tensor:
-        """:param assign: (B, N, M) one-hot pre-assignment or assignment probabilities; :return: (B,)"""
-        return self.flat_forward(view, assign).squeeze(-1)
 
 
 #: Size of the per-step task state of the select stage (remaining demand K + 4 scalars).
@@ -494,14 +381,6 @@ class PointerHead(nn.Module):
         if self.skip_dot:
             return view.entity.new_zeros(*view.entity.shape[:-1], 0)
         return self.entity(view.entity)
-
-    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        # Models saved before the unit-cost feature have a 6-column read-out: its new column starts at 0.
-        key = prefix + "dyn.weight"
-        weight = state_dict.get(key)
-        if weight is not None and weight.shape[-1] == SELECT_DYN - 1:
-            state_dict[key] = th.cat([weight, weight.new_zeros(*weight.shape[:-1], 1)], dim=-1)
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
         """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time

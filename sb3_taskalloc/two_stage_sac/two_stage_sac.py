@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from collections import defaultdict
+from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -15,26 +15,12 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
-from torch.nn import functional as F
 
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
-from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
+from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.two_stage_sac.policies import (
-    COVER_TOL,
-    CriticContext,
-    PreAssignActor,
-    SelectCritic,
-    Selector,
-    TAMPolicy,
-    TwinCritic,
-    check_spaces,
-    choosable,
-    own_column,
-    select_features,
-    still_winnable,
-    useful_supply,
-)
+from sb3_taskalloc.two_stage_sac import losses
+from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 
@@ -281,7 +267,9 @@ class TwoStageSAC(OffPolicyAlgorithm):
 
     # ------------------------------------------------------------------ training
 
-    def _alpha(self, log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
+    @staticmethod
+    def _alpha(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
+        """The temperature as a constant of this gradient step: exp(log α) when tuned, else the fixed value."""
         return th.exp(log_alpha.detach()) if log_alpha is not None else fixed  # type: ignore[return-value]
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
@@ -290,91 +278,99 @@ class TwoStageSAC(OffPolicyAlgorithm):
         if self.actor is not None and self.critic is not None:
             optimizers += [self.actor.optimizer, self.critic.optimizer]
         self._update_learning_rate(optimizers)
-        logs: dict[str, list[float]] = {}
+        logs: dict[str, list[float]] = defaultdict(list)
+
         for gradient_step in range(gradient_steps):
-            data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
-            view = self.policy.parse(data.observations)
+            replay_data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
+            obs = self.policy.parse(replay_data.observations)
+            # During the critic warm-up (implementation detail 11) only the critics learn: the actors and the
+            # temperatures keep their initial values.
             actors_learn = self._n_updates + gradient_step >= self.actor_warmup
-            if self.actor is not None:
-                next_view = self.policy.parse(data.next_observations)
-                for key, value in self._preassign_step(view, next_view, data, actors_learn).items():
-                    logs.setdefault(key, []).append(value)
-            for key, value in self._select_step(view, data, actors_learn).items():
-                logs.setdefault(key, []).append(value)
+
+            # Stage 1, pre-assignment (paper: Pre-assign Module, Algorithm 2).
+            if self.actor is not None and self.critic is not None and self.critic_target is not None:
+                alpha = self._alpha(self.log_ent_coef, self.ent_coef_tensor)
+                logs["ent_coef"].append(alpha.item())
+                # Critic: the soft TD target of L_critic(φ) on the stored pre-assignment (details 2–3).
+                critic = losses.preassign_critic_loss(
+                    self.actor,
+                    self.critic,
+                    self.critic_target,
+                    obs,
+                    self.policy.parse(replay_data.next_observations),
+                    replay_data.rewards.squeeze(-1),
+                    replay_data.dones.squeeze(-1),
+                    replay_data.candidates,
+                    self.gamma,
+                    alpha,
+                )
+                logs["critic_loss"].append(critic.loss.item())
+                if not actors_learn:
+                    self._step(self.critic.optimizer, critic.loss)
+                else:
+                    dist = self.actor(obs)
+                    # Temperature: log α·(H̄ − H̄*) on the mean per-entity entropy (detail 4).
+                    if self.log_ent_coef is not None and self.ent_coef_optimizer is not None:
+                        entropy = losses.preassign_entropy(dist, obs, self.target_entropy_ratio)
+                        if entropy.entropy.numel() > 0:
+                            ent_loss = losses.ent_coef_loss(self.log_ent_coef, entropy.entropy, entropy.target)
+                            logs["ent_coef_loss"].append(self._step(self.ent_coef_optimizer, ent_loss))
+                    # Actor: L_actor(θ) on the same critic values as the critic loss (detail 3), + β KL(π ‖ π₀) (detail 12).
+                    actor_loss = losses.preassign_actor_loss(
+                        dist, self.critic, critic.contexts, obs, alpha, self.policy.actor_prior, self.prior_coef
+                    )
+                    logs["actor_loss"].append(actor_loss.item())
+                    # Disjoint parameters: one backward pass gives each network its own gradient.
+                    self.critic.optimizer.zero_grad()
+                    self.actor.optimizer.zero_grad()
+                    (critic.loss + actor_loss).backward()
+                    self.critic.optimizer.step()
+                    self.actor.optimizer.step()
+
+            # Stage 2, select (paper: Select Module, Algorithm 3): discrete SAC on the stored pick orders (detail 5),
+            # on the first ``select_batch_size`` rows (each holds up to M × team-size transitions).
+            select_alpha = self._alpha(self.log_select_ent_coef, self.select_ent_coef_tensor)
+            logs["select_ent_coef"].append(select_alpha.item())
+            rows = slice(0, self.select_batch_size)
+            select = losses.select_losses(
+                self.selector,
+                self.select_critic,
+                self.select_critic_target,
+                ObsView(*(x[rows] for x in obs)),
+                replay_data.candidates[rows],
+                replay_data.pick_rank[rows],
+                self.policy.preassign,
+                select_alpha,
+                self.target_entropy_ratio,
+                self.policy.selector_prior,
+                self.select_prior_coef if actors_learn else 0.0,  # the prior term enters only the actor loss
+            )
+            if select is not None:
+                if actors_learn and self.log_select_ent_coef is not None and self.select_ent_coef_optimizer is not None:
+                    ent_loss = losses.ent_coef_loss(self.log_select_ent_coef, select.entropy, select.target_entropy)
+                    logs["select_ent_coef_loss"].append(self._step(self.select_ent_coef_optimizer, ent_loss))
+                logs["select_critic_loss"].append(self._step(self.select_critic.optimizer, select.critic_loss))
+                if actors_learn:
+                    logs["select_actor_loss"].append(self._step(self.selector.optimizer, select.actor_loss))
+
+            # Target networks: Polyak averaging every ``target_update_interval`` gradient steps.
             if gradient_step % self.target_update_interval == 0:
                 if self.critic is not None and self.critic_target is not None:
                     foreach_polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
                 foreach_polyak_update(self.select_critic.parameters(), self.select_critic_target.parameters(), self.tau)
+
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
-    def _step_ent_coef(
-        self, log_alpha: th.Tensor | None, optimizer: th.optim.Optimizer | None, entropy: th.Tensor, target: th.Tensor
-    ) -> float | None:
-        """One step of the temperature loss log α·(H − H*) (α grows while the entropy is below its target)."""
-        if log_alpha is None or optimizer is None or entropy.numel() == 0:
-            return None
-        loss = (log_alpha * (entropy - target).detach()).mean()
-        _optimize(optimizer, loss)
+    @staticmethod
+    def _step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> float:
+        """One optimizer step on ``loss``; returns its value."""
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
         return loss.item()
-
-    def _preassign_step(
-        self, view: ObsView, next_view: ObsView, data: TwoStageReplayBufferSamples, actor_learns: bool = True
-    ) -> dict[str, float]:
-        assert self.actor is not None and self.critic is not None and self.critic_target is not None
-        losses = preassign_losses(self, view, next_view, data, actor_terms=actor_learns)
-        logs = {"ent_coef": losses["ent_coef"].item()}
-        if not actor_learns:  # critic warm-up (``actor_warmup``): the actor and α keep their initial values
-            _optimize(self.critic.optimizer, losses["critic_loss"])
-            logs["critic_loss"] = losses["critic_loss"].item()
-            return logs
-        ent_loss = self._step_ent_coef(
-            self.log_ent_coef, self.ent_coef_optimizer, losses["mean_entropy"], losses["target_entropy"]
-        )
-        if ent_loss is not None:
-            logs["ent_coef_loss"] = ent_loss
-        # Actor and critic losses on the same critic values (both before either step, as in the original SAC code):
-        # the actor loss reuses the critics' scores and mixer context, detached, and the actor's distribution.
-        actor_loss = actor_loss_of(self, view, losses["ent_coef"], losses["dist"], losses["contexts"])
-        self.critic.optimizer.zero_grad()
-        self.actor.optimizer.zero_grad()
-        (losses["critic_loss"] + actor_loss).backward()  # disjoint parameters: each network gets its own gradient
-        self.critic.optimizer.step()
-        self.actor.optimizer.step()
-        logs.update(critic_loss=losses["critic_loss"].item(), actor_loss=actor_loss.item())
-        return logs
-
-    def _select_step(self, view: ObsView, data: TwoStageReplayBufferSamples, actor_learns: bool = True) -> dict[str, float]:
-        alpha = self._alpha(self.log_select_ent_coef, self.select_ent_coef_tensor)
-        rows = slice(0, self.select_batch_size)
-        sub = ObsView(*(x[rows] for x in view))
-        losses = select_losses(
-            self.policy,
-            sub,
-            data.candidates[rows],
-            data.pick_rank[rows],
-            alpha,
-            self.target_entropy_ratio,
-            self.select_prior_coef if actor_learns else 0.0,  # the prior term enters only the actor loss
-        )
-        logs = {"select_ent_coef": alpha.item()}
-        if losses["n"] == 0:
-            return logs
-        if not actor_learns:
-            _optimize(self.select_critic.optimizer, losses["critic_loss"])
-            logs["select_critic_loss"] = losses["critic_loss"].item()
-            return logs
-        ent_loss = self._step_ent_coef(
-            self.log_select_ent_coef, self.select_ent_coef_optimizer, losses["entropy"], losses["target_entropy"]
-        )
-        if ent_loss is not None:
-            logs["select_ent_coef_loss"] = ent_loss
-        _optimize(self.select_critic.optimizer, losses["critic_loss"])
-        _optimize(self.selector.optimizer, losses["actor_loss"])
-        logs.update(select_critic_loss=losses["critic_loss"].item(), select_actor_loss=losses["actor_loss"].item())
-        return logs
 
     # ------------------------------------------------------------------ API
 
@@ -481,22 +477,6 @@ class TwoStageSAC(OffPolicyAlgorithm):
         return state_dicts, variables
 
 
-# ---------------------------------------------------------------------- losses (DESIGN §5 closed forms)
-
-
-@contextmanager
-def frozen(module: th.nn.Module) -> Iterator[None]:
-    """Treat ``module``'s parameters as constants inside the block (no gradient, no backward pass through it)."""
-    params = [p for p in module.parameters() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for p in params:
-            p.requires_grad_(True)
-
-
 @th.no_grad()
 def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
     """SB3's :func:`~stable_baselines3.common.utils.polyak_update` (θ' ← (1 − τ)·θ' + τ·θ, the same arithmetic) with
@@ -506,192 +486,3 @@ def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[t
         raise ValueError(f"{len(params)} parameters but {len(target_params)} target parameters")
     th._foreach_mul_(target_params, 1 - tau)
     th._foreach_add_(target_params, params, alpha=tau)
-
-
-def _optimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
-    optimizer.zero_grad()
-    loss.backward()
-    optimizer.step()
-
-
-def preassign_losses(
-    model: TwoStageSAC,
-    view: ObsView,
-    next_view: ObsView,
-    data: TwoStageReplayBufferSamples,
-    actor_terms: bool = True,
-) -> dict[str, Any]:
-    """Stage-1 critic loss, temperature statistics and the actor's distribution on ``view`` (implementation details 2–4).
-
-    :param actor_terms: also return the actor's distribution and entropy statistics on ``view`` (``False``: the critic
-        loss alone, for the critic warm-up; ``dist``, ``mean_entropy`` and ``target_entropy`` are then None)
-    """
-    assert model.actor is not None and model.critic is not None and model.critic_target is not None
-    dist = mean_entropy = target_entropy = None
-    if actor_terms:
-        free = view.assignable
-        dist = model.actor(view)
-        entropy_i = dist.entropy()  # (B, N), 0 where the entity has no choice
-        n_free = free.sum(1)
-        has_free = n_free > 0
-        mean_entropy = (entropy_i.sum(1) / n_free.clamp_min(1))[has_free]
-        n_open = view.task_mask.sum(1).float()
-        target_entropy = (model.target_entropy_ratio * th.log(n_open.clamp_min(1)))[has_free]
-    alpha = model._alpha(model.log_ent_coef, model.ent_coef_tensor)
-    with th.no_grad():
-        next_dist = model.actor(next_view)
-        next_q = th.stack(model.critic_target(next_view, next_dist.probs), dim=0).min(0).values
-        next_v = next_q + alpha * next_dist.entropy().sum(1)
-        target_q = data.rewards.squeeze(-1) + (1 - data.dones.squeeze(-1)) * model.gamma * next_v
-    assign = data.candidates.transpose(1, 2).float()  # one-hot c: (B, N, M)
-    contexts = model.critic.contexts(view)
-    current = model.critic.mix(contexts, assign)
-    critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
-    return {
-        "critic_loss": critic_loss,
-        "dist": dist,
-        "contexts": contexts,
-        "target_q": target_q,
-        "ent_coef": alpha,
-        "mean_entropy": mean_entropy,
-        "target_entropy": target_entropy,
-    }
-
-
-def actor_loss_of(
-    model: TwoStageSAC,
-    view: ObsView,
-    alpha: th.Tensor,
-    dist: MaskedCategorical | None = None,
-    contexts: list[CriticContext] | None = None,
-) -> th.Tensor:
-    """Stage-1 actor loss: mean over the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
-    (+ β Σ_i KL(π_i ‖ π₀_i) with ``prior_coef`` β > 0).
-
-    The critics are frozen while it is built, so autograd records only the path through π (the per-entity scores
-    and the mixer's hyper-weights are constants of the actor loss): no backward pass through the critic networks.
-
-    :param dist: the actor's distribution on ``view`` when already computed (else computed here)
-    :param contexts: the critics' :meth:`~TwinCritic.contexts` on ``view`` when already computed (detached here)
-    """
-    assert model.actor is not None and model.critic is not None
-    if dist is None:
-        dist = model.actor(view)
-    with frozen(model.critic):
-        contexts = model.critic.contexts(view) if contexts is None else [ctx.detach() for ctx in contexts]
-        q_pi = th.stack(model.critic.mix(contexts, dist.probs), dim=0).min(0).values
-    loss = -alpha * dist.entropy().sum(1) - q_pi
-    if model.prior_coef > 0 and model.policy.actor_prior is not None:
-        with th.no_grad():
-            prior = model.policy.actor_prior(view)
-        loss = loss + model.prior_coef * dist.kl(prior).sum(1)
-    return loss.mean()
-
-
-def select_rounds(policy: TAMPolicy, candidates: th.Tensor) -> list[th.Tensor]:
-    """Decoding rounds of the stored decisions: one round (c from the candidate sets) with pre-assignment; one per
-    task without it (the candidate sets then overlap)."""
-    M = candidates.shape[1]
-    if policy.preassign:
-        c = th.where(candidates.any(1), candidates.float().argmax(1), -1)
-        return [c]
-    return [th.where(candidates[:, j], j, -1) for j in range(M)]
-
-
-def select_losses(
-    policy: TAMPolicy,
-    view: ObsView,
-    candidates: th.Tensor,
-    pick_rank: th.Tensor,
-    alpha: th.Tensor,
-    target_entropy_ratio: float,
-    prior_coef: float = 0.0,
-) -> dict[str, Any]:
-    """Discrete-SAC losses of the select stage on the stored pick orders (implementation detail 5).
-
-    Under teacher forcing every state of the decoding is known in advance (remaining demand after t picks =
-    relu(demand − Σ supplies of the first t picks), cost = Σ their pair costs, available = not picked before t), so
-    all steps of all tasks of all rows are evaluated in one batched pass, with time as a leading dimension.
-    """
-    rounds = select_rounds(policy, candidates)
-    if len(rounds) > 1:  # W/o Pre: the rounds are independent given their candidate sets, so stack them as rows
-        n = len(rounds)
-        view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
-        pick_rank = pick_rank.repeat(n, 1, 1)
-    cat = _select_round_terms(policy, view, th.cat(rounds, 0), pick_rank, alpha, prior_coef)
-    if not cat:
-        return {"n": 0}
-    target = (cat["reward"] + (1 - cat["done"]) * cat["v_next"]).detach()  # γ = 1 within a task
-    n_critics = cat["q_sa"].shape[-1]
-    critic_loss = 0.5 * sum(F.mse_loss(cat["q_sa"][:, k], target) for k in range(n_critics))
-    return {
-        "n": int(target.numel()),
-        "critic_loss": critic_loss,
-        "actor_loss": cat["actor"].mean(),
-        "target": target,
-        "entropy": cat["entropy"],
-        "target_entropy": target_entropy_ratio * cat["log_choices"],
-    }
-
-
-def _select_round_terms(
-    policy: TAMPolicy, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, alpha: th.Tensor, prior_coef: float = 0.0
-) -> dict[str, th.Tensor]:
-    """Per-transition terms (flattened over valid (t, b, j)) of one decoding round.
-
-    Each entity is a candidate of one task, so the per-step distributions over a task's candidates are kept per
-    entity, (T, B, N), and summed into their tasks (:class:`SegmentedCategorical`): no (T, B, M, N) tensor."""
-    cand = task_of >= 0
-    # (B, N): step at which the entity's own task picked it, −1 if never (or if it is no candidate)
-    rank_own = th.where(cand, own_column(pick_rank.transpose(1, 2), task_of), -1)
-    steps = int(rank_own.max().item()) + 1
-    if steps <= 0:
-        return {}
-    M = pick_rank.shape[1]
-    pc_own = own_column(view.pair_cost, task_of)  # (B, N)
-    seg = task_of.clamp_min(0)  # every tensor below is per entity (T, B, N) or per task (T, B, M): no (T, B, M, N)
-    tt = th.arange(steps, device=rank_own.device).view(-1, 1, 1)
-    pf = (rank_own == tt).float()  # (T, B, N): entity picked at step t (by its own task)
-    valid = segment_sum(pf, seg, M) > 0  # (T, B, M): task j picks at step t
-    sup = segment_sum(pf.unsqueeze(-1) * view.supply, seg, M, vector=True)  # (T, B, M, K) supply of the pick
-    pc = segment_sum(pf * pc_own, seg, M)  # (T, B, M) pair cost of the pick
-    sup_cum, pc_cum, n_cum = sup.cumsum(0), pc.cumsum(0), valid.float().cumsum(0)
-    rem = (view.demand - (sup_cum - sup)).clamp_min(0.0)  # before the pick
-    rem_after = (view.demand - sup_cum).clamp_min(0.0)
-    avail = cand & ((rank_own < 0) | (rank_own >= tt))  # (T, B, N) before the pick
-    avail_after = cand & ((rank_own < 0) | (rank_own > tt))
-    useful = useful_supply(view, task_of, rem)  # shared by the choices and the pointer's features
-    choices = choosable(view, task_of, avail, rem, useful)
-    choices_after = choosable(view, task_of, avail_after, rem_after)
-    mask = choices & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
-    newly = valid & (rem_after <= COVER_TOL).all(-1)
-    done = valid & (newly | ~still_winnable(view, task_of, choices_after, pc_own, rem_after, pc_cum))
-    reward = valid.float() * (-pc + view.reward * newly.float())
-
-    task_state, dyn = select_features(view, task_of, pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful)
-    logits = policy.selector.head(policy.selector.head.embed_entities(view), task_state, dyn, task_of)
-    dist = SegmentedCategorical(logits, mask, seg, M)
-    qs = policy.select_critic(policy.select_critic.embed(view), task_state, dyn, task_of)  # (T, B, N) each
-    with th.no_grad():
-        d_target = policy.select_critic_target.embed(view)
-        q_targ = th.stack(policy.select_critic_target(d_target, task_state, dyn, task_of), 0).min(0).values
-        v = dist.expect(q_targ - alpha * dist.log_probs)  # V(s_t), (T, B, M)
-        v_next = th.cat([v[1:], th.zeros_like(v[:1])], 0)
-    min_q = th.stack(qs, 0).min(0).values.detach()
-    actor = dist.expect(alpha * dist.log_probs - min_q)
-    if prior_coef > 0:
-        with th.no_grad():
-            head = policy.selector_prior.head
-            prior = SegmentedCategorical(head(head.embed_entities(view), task_state, dyn, task_of), mask, seg, M)
-        actor = actor + prior_coef * dist.kl(prior)
-    q_sa = th.stack([segment_sum(pf * q, seg, M) for q in qs], dim=-1)  # (T, B, M, n_critics)
-    n_choices = segment_sum(mask.float(), seg, M)
-    return {
-        "reward": reward[valid],
-        "done": done[valid].float(),
-        "v_next": v_next[valid],
-        "q_sa": q_sa[valid],
-        "actor": actor[valid],
-        "entropy": dist.entropy()[valid],
-        "log_choices": th.log(n_choices.clamp_min(1))[valid],
-    }

@@ -1,0 +1,179 @@
+"""Actor and critic modules of the two stages, assembled from :mod:`~sb3_taskalloc.common.torch_layers` and
+:mod:`~sb3_taskalloc.common.mixers` by :class:`~sb3_taskalloc.TAMPolicy`.
+
+Stage 1 (pre-assignment): :class:`PreAssignActor` and a :class:`TwinCritic` of mixing critics, either
+:class:`AMIXCritic` (per-entity scores mixed by AMIX) or :class:`GlobalCritic` (the "W/o AMIX" ablation). Both critics
+split their work the same way: :meth:`context` (everything that does not depend on the assignment, computed once) and
+:meth:`mix` (the value of one assignment), so the losses treat them alike.
+
+Stage 2 (select): :class:`Selector` (the pointer actor) and :class:`SelectCritic` (its twin Q-functions).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch as th
+from torch import nn
+
+from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, MixContext
+from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
+
+
+class PreAssignActor(nn.Module):
+    """π_i(j|s) = softmax over open tasks of h_i·g_j/√d (+ pair term): one categorical per free entity.
+
+    :param scorer: a :class:`~sb3_taskalloc.common.torch_layers.PairScorer` (TAM) or
+        :class:`~sb3_taskalloc.common.torch_layers.FlatScorer` (W/o TAM)
+    """
+
+    optimizer: th.optim.Optimizer
+
+    def __init__(self, scorer: nn.Module) -> None:
+        super().__init__()
+        self.scorer = scorer
+
+    @property
+    def size_agnostic(self) -> bool:
+        return bool(self.scorer.size_agnostic)
+
+    def forward(self, view: ObsView) -> MaskedCategorical:
+        return MaskedCategorical(self.scorer(view), view.valid)
+
+
+class AMIXContext(NamedTuple):
+    """Action-independent part of an :class:`AMIXCritic` for a batch of states."""
+
+    scores: th.Tensor  # (B, N, M) Q_i(s, j)
+    mix: MixContext  # AMIX attention, values and hyper-bias
+
+    def detach(self) -> AMIXContext:
+        return AMIXContext(self.scores.detach(), self.mix.detach())
+
+
+class GlobalContext(NamedTuple):
+    """Action-independent part of a :class:`GlobalCritic`: the states themselves (its MLP reads them with c)."""
+
+    view: ObsView
+
+    def detach(self) -> GlobalContext:
+        return self
+
+
+CriticContext = AMIXContext | GlobalContext
+
+
+class AMIXCritic(nn.Module):
+    """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) with per-entity scores Q_i(s, j) = o_i·q_j (+ pair term).
+
+    :param scorer: per-entity Q scorer (TAM or flat)
+    :param mixer: the AMIX mixer
+    """
+
+    def __init__(self, scorer: nn.Module, mixer: AMIXMixer) -> None:
+        super().__init__()
+        self.scorer = scorer
+        self.mixer = mixer
+
+    @property
+    def size_agnostic(self) -> bool:
+        return bool(self.scorer.size_agnostic and self.mixer.size_agnostic)
+
+    def context(self, view: ObsView) -> AMIXContext:
+        """Everything that does not depend on the assignment (computed once, then mixed for several assignments)."""
+        return AMIXContext(self.scorer(view), self.mixer.context(view))
+
+    def mix(self, ctx: AMIXContext, assign: th.Tensor) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
+        return self.mixer.mix((ctx.scores * assign).sum(-1), ctx.mix)
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
+        return self.mix(self.context(view), assign)
+
+
+class GlobalCritic(nn.Module):
+    """The "W/o AMIX" critic: one MLP over the flattened state and the (one-hot or expected) assignment.
+
+    :param mixer: the global MLP
+    """
+
+    size_agnostic = False
+
+    def __init__(self, mixer: GlobalMixer) -> None:
+        super().__init__()
+        self.mixer = mixer
+
+    def context(self, view: ObsView) -> GlobalContext:
+        return GlobalContext(view)
+
+    def mix(self, ctx: GlobalContext, assign: th.Tensor) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
+        return self.mixer(assign, ctx.view)
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
+        return self.mix(self.context(view), assign)
+
+
+class TwinCritic(nn.Module):
+    """``n_critics`` independent mixing critics (clipped double-Q).
+
+    :param critics: :class:`AMIXCritic` or :class:`GlobalCritic` instances
+    """
+
+    optimizer: th.optim.Optimizer
+
+    def __init__(self, critics: list[AMIXCritic | GlobalCritic]) -> None:
+        super().__init__()
+        if not critics:
+            raise ValueError("TwinCritic needs at least one critic (n_critics >= 1)")
+        self.q_networks = nn.ModuleList(critics)
+
+    @property
+    def size_agnostic(self) -> bool:
+        return all(q.size_agnostic for q in self.q_networks)
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> tuple[th.Tensor, ...]:
+        return tuple(q(view, assign) for q in self.q_networks)
+
+    def contexts(self, view: ObsView) -> list[CriticContext]:
+        return [q.context(view) for q in self.q_networks]  # type: ignore[operator]
+
+    def mix(self, contexts: list[CriticContext], assign: th.Tensor) -> tuple[th.Tensor, ...]:
+        return tuple(q.mix(ctx, assign) for q, ctx in zip(self.q_networks, contexts, strict=True))  # type: ignore[operator]
+
+
+class Selector(nn.Module):
+    """The pointer actor of the select stage.
+
+    :param head: its pointer head
+    """
+
+    optimizer: th.optim.Optimizer
+    size_agnostic = True
+
+    def __init__(self, head: PointerHead) -> None:
+        super().__init__()
+        self.head = head
+
+
+class SelectCritic(nn.Module):
+    """Twin Q-functions of the select stage, Q(s_t, i) for every candidate i (pointer form with a per-task baseline).
+
+    :param heads: one pointer head per critic
+    """
+
+    optimizer: th.optim.Optimizer
+    size_agnostic = True
+
+    def __init__(self, heads: list[PointerHead]) -> None:
+        super().__init__()
+        self.heads = nn.ModuleList(heads)
+
+    def forward(
+        self, embeddings: list[th.Tensor], task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor
+    ) -> list[th.Tensor]:
+        return [h(d, task_state, dyn, task_of) for h, d in zip(self.heads, embeddings, strict=True)]
+
+    def embed(self, view: ObsView) -> list[th.Tensor]:
+        return [h.embed_entities(view) for h in self.heads]  # type: ignore[operator]

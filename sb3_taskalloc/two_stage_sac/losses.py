@@ -1,0 +1,200 @@
+"""Losses of TwoStageSAC, one function per term (implementation details 2–5 and 12 of
+:class:`~sb3_taskalloc.TwoStageSAC`).
+
+Every function takes the networks and tensors it needs and returns tensors: none reads the algorithm's state. Both
+prior terms come the same way: the frozen initial actor (``prior``) and its weight (``prior_coef``), the term being
+skipped when the weight is 0 or there is no prior.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import NamedTuple
+
+import torch as th
+from torch import nn
+from torch.nn import functional as F
+
+from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
+from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectCritic, Selector, TwinCritic
+from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.two_stage_sac.select_stage import stored_rounds, teacher_forced
+
+
+@contextmanager
+def frozen(module: nn.Module) -> Iterator[None]:
+    """Treat ``module``'s parameters as constants inside the block (no gradient, no backward pass through it)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+# ---------------------------------------------------------------------------------------------- stage 1: pre-assign
+
+
+class PreAssignCriticLoss(NamedTuple):
+    loss: th.Tensor  # ½ Σ_k MSE(Q^k_tot(s, c), y)
+    target_q: th.Tensor  # (B,) y
+    contexts: list[CriticContext]  # the online critics' action-independent parts on s (reused by the actor loss)
+
+
+def preassign_critic_loss(
+    actor: PreAssignActor,
+    critic: TwinCritic,
+    critic_target: TwinCritic,
+    view: ObsView,
+    next_view: ObsView,
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    candidates: th.Tensor,
+    gamma: float,
+    alpha: th.Tensor,
+) -> PreAssignCriticLoss:
+    """The paper's L_critic(φ) in its soft form (implementation details 2–3):
+    y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], H(s) = Σ_i H(π_i(·|s)), and the
+    loss ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)² on the stored pre-assignment c.
+
+    :param rewards: (B,) env rewards; :param dones: (B,) 1 where s' is terminal (not truncated)
+    :param candidates: (B, M, N) the stored candidate sets (the one-hot c)
+    :param alpha: the temperature α (a constant of this loss)
+    """
+    with th.no_grad():
+        next_dist = actor(next_view)
+        next_q = th.stack(critic_target(next_view, next_dist.probs), dim=0).min(0).values
+        next_v = next_q + alpha * next_dist.entropy().sum(1)
+        target_q = rewards + (1 - dones) * gamma * next_v
+    assign = candidates.transpose(1, 2).float()  # one-hot c: (B, N, M)
+    contexts = critic.contexts(view)
+    current = critic.mix(contexts, assign)
+    loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
+    return PreAssignCriticLoss(loss, target_q, contexts)  # type: ignore[arg-type]
+
+
+class EntropyTerms(NamedTuple):
+    entropy: th.Tensor  # mean per-entity entropy H̄(s) of each state with a free entity
+    target: th.Tensor  # its target H̄* = ratio × mean_i log(#valid tasks)
+
+
+def preassign_entropy(dist: MaskedCategorical, view: ObsView, target_entropy_ratio: float) -> EntropyTerms:
+    """Statistics of the temperature loss (implementation detail 4) over the states that have a free entity."""
+    n_free = view.assignable.sum(1)
+    has_free = n_free > 0
+    mean_entropy = (dist.entropy().sum(1) / n_free.clamp_min(1))[has_free]
+    n_open = view.task_mask.sum(1).float()
+    return EntropyTerms(mean_entropy, (target_entropy_ratio * th.log(n_open.clamp_min(1)))[has_free])
+
+
+def preassign_actor_loss(
+    dist: MaskedCategorical,
+    critic: TwinCritic,
+    contexts: list[CriticContext],
+    view: ObsView,
+    alpha: th.Tensor,
+    prior: PreAssignActor | None = None,
+    prior_coef: float = 0.0,
+) -> th.Tensor:
+    """The paper's L_actor(θ) with the true entropy and the expectation over actions (implementation detail 3): mean over
+    the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)), plus β Σ_i KL(π_i ‖ π₀_i) with a prior
+    (implementation detail 12).
+
+    The critics are frozen and their contexts detached, so autograd records only the path through π: no backward pass
+    through the critic networks.
+
+    :param dist: the actor's distribution on ``view``
+    :param contexts: the critics' contexts on ``view`` (:meth:`~TwinCritic.contexts`)
+    :param prior: the frozen initial actor π₀; :param prior_coef: β
+    """
+    with frozen(critic):
+        q_pi = th.stack(critic.mix([ctx.detach() for ctx in contexts], dist.probs), dim=0).min(0).values
+    loss = -alpha * dist.entropy().sum(1) - q_pi
+    if prior_coef > 0 and prior is not None:
+        with th.no_grad():
+            prior_dist = prior(view)
+        loss = loss + prior_coef * dist.kl(prior_dist).sum(1)
+    return loss.mean()
+
+
+def ent_coef_loss(log_alpha: th.Tensor, entropy: th.Tensor, target: th.Tensor) -> th.Tensor:
+    """log α·(H − H*): α grows while the entropy is below its target (SB3's SAC, per-entity or per-pick entropies)."""
+    return (log_alpha * (entropy - target).detach()).mean()
+
+
+# ------------------------------------------------------------------------------------------------- stage 2: select
+
+
+class SelectLosses(NamedTuple):
+    n: int  # transitions
+    critic_loss: th.Tensor
+    actor_loss: th.Tensor
+    target: th.Tensor  # (n,) TD targets
+    entropy: th.Tensor  # (n,) entropy of each pick's distribution
+    target_entropy: th.Tensor  # (n,) ratio × log(#choices)
+
+
+def select_losses(
+    selector: Selector,
+    critic: SelectCritic,
+    critic_target: SelectCritic,
+    view: ObsView,
+    candidates: th.Tensor,
+    pick_rank: th.Tensor,
+    preassign: bool,
+    alpha: th.Tensor,
+    target_entropy_ratio: float,
+    prior: Selector | None = None,
+    prior_coef: float = 0.0,
+) -> SelectLosses | None:
+    """Discrete-SAC losses of the select stage on the stored pick orders (implementation detail 5):
+    Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})] (γ = 1 within a
+    task) and the actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)] (+ β_s KL(π ‖ π₀) with a prior).
+
+    All steps of all tasks of all rows are evaluated in one batched pass (:func:`teacher_forced`).
+
+    :param candidates: (B, M, N) stored candidate sets; :param pick_rank: (B, M, N) stored pick steps
+    :param preassign: the decisions came from pre-assignment (one round) or a shared pool (one round per task)
+    :return: the losses, or None when the batch holds no pick
+    """
+    rounds = stored_rounds(candidates, preassign)
+    if len(rounds) > 1:  # W/o Pre: the rounds are independent given their candidate sets, so stack them as rows
+        n = len(rounds)
+        view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
+        pick_rank = pick_rank.repeat(n, 1, 1)
+    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank)
+    if tf is None:
+        return None
+    M = pick_rank.shape[1]
+    head = selector.head
+    logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
+    dist = SegmentedCategorical(logits, tf.choices, tf.seg, M)
+    qs = critic(critic.embed(view), tf.task_state, tf.dyn, tf.task_of)  # (T, B, N) each
+    with th.no_grad():
+        q_targ = th.stack(critic_target(critic_target.embed(view), tf.task_state, tf.dyn, tf.task_of), 0).min(0).values
+        v = dist.expect(q_targ - alpha * dist.log_probs)  # V(s_t), (T, B, M)
+        v_next = th.cat([v[1:], th.zeros_like(v[:1])], 0)
+    min_q = th.stack(qs, 0).min(0).values.detach()
+    actor = dist.expect(alpha * dist.log_probs - min_q)
+    if prior_coef > 0 and prior is not None:
+        with th.no_grad():
+            p_head = prior.head
+            p_logits = p_head(p_head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
+            prior_dist = SegmentedCategorical(p_logits, tf.choices, tf.seg, M)
+        actor = actor + prior_coef * dist.kl(prior_dist)
+    valid = tf.valid
+    q_sa = th.stack([segment_sum(tf.picked * q, tf.seg, M) for q in qs], dim=-1)[valid]  # (n, n_critics)
+    target = (tf.reward[valid] + (1 - tf.done[valid].float()) * v_next[valid]).detach()
+    critic_loss = 0.5 * sum(F.mse_loss(q_sa[:, k], target) for k in range(q_sa.shape[-1]))
+    n_choices = segment_sum(tf.choices.float(), tf.seg, M)
+    return SelectLosses(
+        n=int(target.numel()),
+        critic_loss=critic_loss,  # type: ignore[arg-type]
+        actor_loss=actor[valid].mean(),
+        target=target,
+        entropy=dist.entropy()[valid],
+        target_entropy=target_entropy_ratio * th.log(n_choices.clamp_min(1))[valid],
+    )
