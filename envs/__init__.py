@@ -1,4 +1,4 @@
-"""Gymnasium environments for dynamic multi-entity task allocation (DESIGN §3–§4).
+"""Gymnasium environments for dynamic multi-entity task allocation.
 
 Importing this package registers the ids ``TaskAlloc/<Name>-v0``::
 

@@ -1,6 +1,6 @@
-"""Shared engine of the task-allocation environments (DESIGN §3).
+"""Shared engine of the task-allocation environments.
 
-One vectorised NumPy implementation of the allocation mechanics; the four environments of DESIGN §4 are this class
+One vectorised NumPy implementation of the allocation mechanics; the four environments are this class
 configured by data tables and keyword arguments (``envs/almighty.py``, ``ept.py``, ``rbf.py``, ``mt.py``).
 """
 
@@ -163,7 +163,7 @@ class TaskAllocEnv(gym.Env):
         :param grid_size: side of the square grid (positions lie in ``0..grid_size-1``); None for no world
         :param travel: how committed entities move: ``"none"`` (work at once), ``"manhattan"`` (4-neighbour, y then x),
             ``"chebyshev"`` (8-neighbour)
-        :param travel_cost: cost per unit of distance added to an entity's base cost (DESIGN §4: base + travel × distance)
+        :param travel_cost: cost per unit of distance added to an entity's base cost (base + travel × distance)
         :param busy: whether committed entities stay committed until their task completes (False: EPT's towers)
         :param consume: whether an entity that completes a task is used up for the rest of the episode (MT's trucks)
         :param arrival: ``"random"`` (every ``arrival_period`` steps, ``arrival_count`` tasks drawn from the table at
@@ -176,7 +176,7 @@ class TaskAllocEnv(gym.Env):
         :param decay: factor ρ applied to the reward and the demand of tasks older than ``decay_after`` steps
         :param decay_after: age θ (steps) after which tasks decay
         :param one_step: the episode ends after the first step (Almighty)
-        :param bidding: the entities' base costs are bids posted with :meth:`set_bids` (DESIGN §8)
+        :param bidding: the entities' base costs are bids posted with :meth:`set_bids`
         :param bid_max: upper bound of a bid (default: 3 × the largest base cost)
         :param strict: raise ``ValueError`` on mask-violating assignments instead of counting them
         :param render_mode: ``"rgb_array"`` or ``"ansi"``
@@ -519,7 +519,7 @@ class TaskAllocEnv(gym.Env):
             raise ValueError(f"assignments of entities {bad.tolist()} violate the action mask (strict=True)")
         self._last_choice = (a, valid)  # the action as applied (for rendering), see :meth:`applied_action`
 
-        # Commit: the pair cost is fixed when the entity is assigned (DESIGN §3 pair_cost).
+        # Commit: the pair cost is fixed when the entity is assigned.
         idx = np.flatnonzero(valid)
         if idx.size:
             self._assigned[idx] = a[idx]

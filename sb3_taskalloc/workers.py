@@ -1,4 +1,4 @@
-"""Self-interested worker entities that bid their wage with SB3's DDPG, co-trained with the manager (DESIGN §8).
+"""Self-interested worker entities that bid their wage with SB3's DDPG, co-trained with the manager.
 
 Workers are the entities of a ``bidding=True`` env. Before every allocation each free worker sees its own attributes
 and the open task nearest to it (the task it is offered) and posts a bid, its wage, in ``[0, bid_max]``; the env

@@ -1,4 +1,4 @@
-"""rl-zoo3 launcher: ``python -m sb3_taskalloc.zoo {train,enjoy} [rl-zoo3 arguments]`` (DESIGN §9).
+"""rl-zoo3 launcher: ``python -m sb3_taskalloc.zoo {train,enjoy} [rl-zoo3 arguments]``.
 
 Registers ``two_stage_sac`` (:class:`~sb3_taskalloc.TwoStageSAC`) and ``maskable_ppo`` (sb3-contrib's MaskablePPO,
 the naive RL baseline) into rl-zoo3 the documented way, by adding them to its ``ALGOS`` dict and, for

@@ -1,4 +1,4 @@
-"""Baselines (DESIGN §6): exactness of the MILP allocator, mask safety and determinism."""
+"""Baselines: exactness of the MILP allocator, mask safety and determinism."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``python -m sb3_taskalloc.bench``: each benchmark runs (``--quick``) and writes well-formed JSON (DESIGN §10).
+"""``python -m sb3_taskalloc.bench``: each benchmark runs (``--quick``) and writes well-formed JSON.
 
 Only the shape and sanity of the figures are checked here; the performance targets are measured by the benchmarks
 themselves, never asserted by a timed test.

@@ -1,4 +1,4 @@
-"""Environment contract of DESIGN §3–§4 (SB3 layout: tests/test_envs.py)."""
+"""The environment contract shared by every TaskAlloc env."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def same_trace(a, b) -> bool:
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_check_env(env_id):
-    # SB3's checker advises 1-D vectors for its default MLP policies; the 2-D (N, F) keys are the contract of DESIGN §3
+    # SB3's checker advises 1-D vectors for its default MLP policies; the 2-D (N, F) keys are the TaskAlloc layout
     # and are consumed by TAMPolicy. Every other warning is an error.
     with warnings.catch_warnings():
         warnings.simplefilter("error")

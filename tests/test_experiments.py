@@ -1,4 +1,4 @@
-"""The experiment runner (DESIGN §7): smoke tables for every env, resume after an interruption, the Almighty figure."""
+"""The experiment runner: smoke tables for every env, resume after an interruption, the Almighty figure."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""TAMPolicy: masks, NaN safety, permutation equivariance, padding invariance (DESIGN §5, §11)."""
+"""TAMPolicy: masks, NaN safety, permutation equivariance, padding invariance."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Save/load, replay buffer persistence, seeding and size transfer (DESIGN §11)."""
+"""Save/load, replay buffer persistence, seeding and size transfer."""
 
 from __future__ import annotations
 
@@ -130,5 +130,5 @@ def test_state_without_the_priors_is_refused():
     """A policy state without the frozen initial actors is not this policy's: loading it names the missing keys."""
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, policy_kwargs={"hidden_dim": 16})
     state = {k: v for k, v in model.policy.state_dict().items() if "_prior." not in k}
-    with pytest.raises(RuntimeError, match="Missing key.*actor_prior"):
+    with pytest.raises(RuntimeError, match=r"Missing key.*actor_prior"):
         model.policy.load_state_dict(state)

@@ -1,4 +1,4 @@
-"""Loss arithmetic of TwoStageSAC against the closed forms of DESIGN §5 on hand-built batches."""
+"""Loss arithmetic of TwoStageSAC against the closed forms on hand-built batches."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from sb3_taskalloc.baselines import GreedyAllocator
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical
 from sb3_taskalloc.common.mixers import AMIXMixer
 from sb3_taskalloc.common.torch_layers import ObsView, parse_obs
+from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac import losses
 from sb3_taskalloc.two_stage_sac.select_stage import SelectState
-from sb3_taskalloc.two_stage_sac.two_stage_sac import foreach_polyak_update
 
 
 @pytest.fixture(scope="module")

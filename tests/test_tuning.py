@@ -1,4 +1,4 @@
-"""Optuna sampler and study runner (DESIGN §9): valid models, pruning, shared journal studies, kill and restart."""
+"""Optuna sampler and study runner: valid models, pruning, shared journal studies, kill and restart."""
 
 from __future__ import annotations
 

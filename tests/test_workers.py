@@ -1,4 +1,4 @@
-"""Bidding workers (DESIGN §8): bids in range, wages paid as charged, determinism, co-training, the market check."""
+"""Bidding workers: bids in range, wages paid as charged, determinism, co-training, the market check."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""rl-zoo3 launcher and configs (DESIGN §9): train, enjoy and -optimize through rl-zoo3's own entry points."""
+"""rl-zoo3 launcher and configs: train, enjoy and -optimize through rl-zoo3's own entry points."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Optuna samplers of TwoStageSAC hyperparameters, in rl-zoo3's signature (DESIGN §9).
+"""Optuna samplers of TwoStageSAC hyperparameters, in rl-zoo3's signature.
 
 ``sample_two_stage_sac_params(trial, n_actions, n_envs, additional_args)`` draws the raw parameters in
 well-conditioned spaces (log scales for rates and 1 − γ, powers of two for batch sizes, categorical widths) and

@@ -1,4 +1,4 @@
-"""Optuna studies of TwoStageSAC that scale from one process to many machines (DESIGN §9).
+"""Optuna studies of TwoStageSAC that scale from one process to many machines.
 
 ``python -m tuning.study --env TaskAlloc/RBF-v0 --n-trials 50 --n-timesteps 20000 --study-name rbf``
 

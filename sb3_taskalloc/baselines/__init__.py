@@ -1,4 +1,4 @@
-"""Baselines with SB3's ``predict``: greedy, random, exact one-step MILP and receding-horizon planners (DESIGN §6)."""
+"""Baselines with SB3's ``predict``: greedy, random, exact one-step MILP and receding-horizon planners."""
 
 from sb3_taskalloc.baselines.base import Allocator
 from sb3_taskalloc.baselines.greedy import GreedyAllocator, RandomAllocator

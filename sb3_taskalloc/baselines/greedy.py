@@ -1,4 +1,4 @@
-"""Greedy and random allocators (DESIGN §6)."""
+"""Greedy and random allocators."""
 
 from __future__ import annotations
 

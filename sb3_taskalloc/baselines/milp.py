@@ -1,4 +1,4 @@
-"""Exact one-step allocation by mixed-integer programming (DESIGN §6), solved by HiGHS through scipy."""
+"""Exact one-step allocation by mixed-integer programming, solved by HiGHS through scipy."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Receding-horizon metaheuristic planners: genetic algorithm, particle swarm, symbiotic organisms search (DESIGN §6).
+"""Receding-horizon metaheuristic planners: genetic algorithm, particle swarm, symbiotic organisms search.
 
 Every ``replan_every`` env steps the planner searches a plan for the next ``horizon`` steps on clones of the env: a
 genome holds one task index per (step, entity) (``M`` = unassigned), and its fitness is the return of replaying it

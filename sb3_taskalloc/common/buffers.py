@@ -1,4 +1,4 @@
-"""Replay buffer of TwoStageSAC: observations plus the two-stage decision (DESIGN §5).
+"""Replay buffer of TwoStageSAC: observations plus the two-stage decision.
 
 Besides SB3's Dict replay data it stores, per transition, the candidate sets of the pre-assignment
 (``candidates[j, i]``: entity i was a candidate of task j when j was decoded) and the pick order of the select stage
@@ -52,7 +52,7 @@ class TwoStageReplayBuffer(DictReplayBuffer):
     """Dict replay buffer that also keeps the two-stage decision of each transition.
 
     :param buffer_size: max number of transitions
-    :param observation_space: the env's Dict observation space (DESIGN §3)
+    :param observation_space: the env's Dict observation space
     :param action_space: the env's MultiDiscrete action space
     :param device: torch device of the sampled tensors
     :param n_envs: number of parallel envs

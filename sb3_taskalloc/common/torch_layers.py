@@ -241,7 +241,7 @@ class PairScorer(nn.Module):
     :param entity_dim: entity feature size
     :param task_dim: task feature size
     :param hidden_dim: embedding size d
-    :param scale: divisor of the dot product (√d for the actor, 1 for the critic, reference spec B20)
+    :param scale: divisor of the dot product (√d for the actor as in the paper, 1 for the critics)
     :param pair_features: add a learned linear term w·φ_ij of the fixed pair basis φ (:func:`pair_basis`)
     :param n_attention_layers: see :class:`TAMEncoder`
     :param activation_fn: activation of the MLPs

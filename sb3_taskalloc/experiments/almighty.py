@@ -1,5 +1,5 @@
 """The paper's first figure: return against training steps on "Retain the Almighty" for pre-assignment and for
-selection without it, in sequence and in random order (DESIGN §7, ``--almighty``)."""
+selection without it, in sequence and in random order."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The paper's results table, regenerated (DESIGN §7).
+"""The paper's results table, regenerated.
 
 Rows: train, zero-shot (entity), few-shot (entity), zero-shot (task), few-shot (task). Columns: Ours, GA, PSO, SOS,
 W/o Pre (sequence), W/o Pre (random), W/o AMIX, W/o TAM, Greedy, MILP, MaskablePPO. A cell is the mean ± std over

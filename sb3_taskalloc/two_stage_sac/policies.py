@@ -150,6 +150,28 @@ class TAMPolicy(BasePolicy):
         modules = (self.actor, self.critic, self.selector, self.select_critic)
         return all(m.size_agnostic for m in modules if m is not None)
 
+    def check_transfer(self, observation_space: spaces.Dict) -> None:
+        """Raise a clear error unless this policy can run on ``observation_space`` (another entity or task count)."""
+        old = self.observation_space
+        for key in ("entity_features", "task_features", "entity_supply"):
+            new_f, old_f = observation_space[key].shape[-1], old[key].shape[-1]  # type: ignore[index]
+            if new_f != old_f:
+                raise ValueError(
+                    f"the env's {key} has {new_f} features per row but the model was trained with {old_f}: it belongs "
+                    "to another family of environments"
+                )
+        new_size = (observation_space["entity_mask"].shape[0], observation_space["task_mask"].shape[0])  # type: ignore[index]
+        old_size = (old["entity_mask"].shape[0], old["task_mask"].shape[0])  # type: ignore[index]
+        if new_size != old_size and not self.size_agnostic:
+            specific = [
+                f"{k}={v!r}" for k, v in (("encoder", self.encoder), ("mixer", self.mixer)) if v not in ("tam", "amix")
+            ]
+            raise ValueError(
+                f"this model's policy is size-specific ({', '.join(specific)}): it cannot run on an env with {new_size[0]} "
+                f"entities × {new_size[1]} tasks; it was trained with {old_size[0]} × {old_size[1]}. Use the TAM encoder "
+                "and AMIX mixer to transfer"
+            )
+
     def _scorer(self, scale: float) -> nn.Module:
         return ENCODERS[self.encoder](self, scale)
 
@@ -295,7 +317,7 @@ class TAMPolicy(BasePolicy):
 
     def _decide_pooled(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
         """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the
-        published code lost them, reference spec B15)."""
+        published code lost them)."""
         B, N, M = view.pair_cost.shape
         device = view.pair_cost.device
         if self.task_order == "random":
@@ -340,7 +362,7 @@ def _flat_scorer(policy: TAMPolicy, scale: float) -> nn.Module:
 def _amix_critic(policy: TAMPolicy) -> AMIXCritic:
     _, _, Fe, Ft, _ = policy.dims
     mixer = AMIXMixer(Fe, Ft, policy.hidden_dim, policy.monotonic_mixer, policy.hyper_bias, policy.activation_fn)
-    return AMIXCritic(policy._scorer(scale=1.0), mixer)  # critics unscaled (reference spec B20)
+    return AMIXCritic(policy._scorer(scale=1.0), mixer)  # critics unscaled: Q-values need no temperature
 
 
 def _global_critic(policy: TAMPolicy) -> GlobalCritic:

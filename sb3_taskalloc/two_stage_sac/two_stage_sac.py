@@ -1,9 +1,8 @@
-"""TwoStageSAC: discrete soft actor-critic for multi-entity task allocation (DESIGN §5)."""
+"""TwoStageSAC: discrete soft actor-critic for multi-entity task allocation."""
 
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -19,6 +18,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac import losses
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 
@@ -45,12 +45,11 @@ class TwoStageSAC(OffPolicyAlgorithm):
        averaging (τ).
     2. Stage-1 target: y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], with
        H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised policy). The env reward is the
-       learning signal (the published code regressed internal select returns instead, reference spec B27).
+       learning signal (the published code regressed internal select returns instead).
     3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
-       (true entropy and expectation over actions; the published code used −Σ log p and p·Q of the taken action, B1).
+       (the paper's L_actor and L_critic with the true entropy and the expectation over actions, as in discrete SAC).
        Both losses use the same critic values, computed once before either network steps (as in the original SAC
-       code; SB3's SAC re-evaluates the critic after its step): the actor loss reuses the critics' per-entity scores
-       and AMIX attention, values and hyper-bias, detached, with the critics frozen, so it costs one re-mix and its
+       code): the actor loss reuses the critics' scores and AMIX context, detached, with the critics frozen, so its
        backward pass never runs through the critic networks.
     4. α auto-tuned (``ent_coef="auto"``): loss log α·(H̄(s) − H̄*), H̄ = mean per-entity entropy,
        H̄* = ``target_entropy_ratio`` × mean_i log(#valid tasks of i); or fixed (paper: 0.05).
@@ -58,22 +57,21 @@ class TwoStageSAC(OffPolicyAlgorithm):
        action = pick; reward = −pair cost, + the task reward on covering; γ = 1 within a task), trained by discrete
        SAC: Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})];
        actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)]. Transitions are re-derived from the stored
-       (observation, candidate sets, pick order); TD targets are detached and use the target critic (B2 fixed); the
-       published code updated it online with batch 1 (B25). Two exact prunings (pair costs are non-negative): a
-       candidate that covers none of the remaining demand is not a choice (it could only add cost), and a task's
-       decoding stops as soon as it can no longer be kept: its choosable candidates cannot cover the remaining
-       demand, or the cost so far plus the cheapest of them reaches the reward (``still_winnable``); that task would
-       have been abandoned anyway. The loop and the select-stage transitions get shorter.
+       (observation, candidate sets, pick order); TD targets are detached and use the target critic. Two exact
+       prunings (pair costs are non-negative): a candidate that covers none of the remaining demand is not a choice
+       (it could only add cost), and a task's decoding stops as soon as it can no longer be kept (``still_winnable``):
+       it would be abandoned anyway. See :mod:`~sb3_taskalloc.two_stage_sac.select_stage`.
     6. Pointer: logits u_i = d_i·e_j^t/√d + w·x_i^t, a dot-product pointer instead of the paper's additive
-       vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step: ~10× cheaper to train);
+       vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step);
        e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
        T^{t+1} = T^t + f^a(u^t)); x_i^t = a fixed basis of the entity's coverage of that demand, pair cost, margin,
        waste and unit cost (pair cost per unit of remaining demand covered), weighed linearly. The select critics
        add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
-    7. Scores are divided by √d in the actor (paper) and not in the critics (B20). Inputs are symlog-normalised.
+    7. Scores are divided by √d in the actor (paper) and not in the critics. Inputs are symlog-normalised.
     8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks.
     9. Ablations are policy kwargs: ``preassign=False, task_order="sequential"|"random"`` (W/o Pre),
-       ``encoder="mlp"`` (W/o TAM), ``mixer="global"`` (W/o AMIX). Abandoned picks return to the pool (B15 fixed).
+       ``encoder="mlp"`` (W/o TAM), ``mixer="global"`` (W/o AMIX): each names a component of the policy. Without
+       pre-assignment, abandoned picks return to the pool.
     10. Initialisation (``TAMPolicy(heuristic_init=True)``, not in the paper): the actors start at cost-greedy rules.
        The pre-assign read-out weighs only the symlog pair cost (each entity leans to its cheapest task), the
        pointer's only the symlog unit cost (each task picks the candidate that covers its remaining demand at the
@@ -86,14 +84,14 @@ class TwoStageSAC(OffPolicyAlgorithm):
        β·KL(π ‖ π₀), π₀ = the actor at initialisation (frozen copies ``actor_prior``/``selector_prior`` in the
        policy), as a behaviour prior (the regularised optimum is π ∝ π₀·exp(Q/β) where the entropy term is small).
        The critics' targets keep the entropy bonus of details 2 and 5. With ``heuristic_init`` the actors then
-       leave the cost-greedy rules only where the critics' values outweigh the KL: without it, the noisy early
-       critics undo the rules within a few hundred gradient steps (README, RBF). The rule-initialised π₀ has
+       leave the cost-greedy rules only where the critics' values outweigh the KL, instead of following the noisy
+       early critics away from them. The rule-initialised π₀ has
        task embeddings that are identically 0, so its scores are computed without its dot products (``freeze``).
     13. Updates: Adam is fused by default (``TAMPolicy._make_optimizer``) and the soft target updates are one
        multi-tensor operation each (:func:`foreach_polyak_update`, SB3's arithmetic): faster, same updates. The TAM
        dot products apply the entity MLP's last layer to the task embeddings instead, h_i·g_j = z_i·(Wᵀg_j) + b·g_j
        (``TAMEncoder.dot``), and the layers that read the raw features reorder their weight-gradient product
-       (``NarrowLinear``): the same values and gradients up to rounding, about 14 % less time per RBF gradient step.
+       (``NarrowLinear``): the same values and gradients up to rounding, at less cost on a CPU.
 
     :param policy: ``"TAMPolicy"`` or a :class:`TAMPolicy` subclass
     :param env: a ``TaskAlloc`` environment (or its id)
@@ -400,20 +398,7 @@ class TwoStageSAC(OffPolicyAlgorithm):
         new_obs, new_act = env.observation_space, env.action_space
         check_spaces(new_obs, new_act)
         if new_obs != self.observation_space:
-            old = self.observation_space
-            for key in ("entity_features", "task_features", "entity_supply"):
-                if new_obs[key].shape[-1] != old[key].shape[-1]:  # type: ignore[index]
-                    raise ValueError(
-                        f"the env's {key} has {new_obs[key].shape[-1]} features per row but the model was trained with "  # type: ignore[index]
-                        f"{old[key].shape[-1]}: it belongs to another family of environments"  # type: ignore[index]
-                    )
-            if not self.policy.size_agnostic:
-                new_size = f"{new_obs['entity_mask'].shape[0]} entities × {new_obs['task_mask'].shape[0]} tasks"  # type: ignore[index]
-                old_size = f"{old['entity_mask'].shape[0]} × {old['task_mask'].shape[0]}"  # type: ignore[index]
-                raise ValueError(
-                    f"this model's policy is size-specific (encoder='mlp' or mixer='global'): it cannot run on an env with "
-                    f"{new_size}; it was trained with {old_size}. Use the TAM encoder and AMIX mixer to transfer"
-                )
+            self.policy.check_transfer(new_obs)  # type: ignore[arg-type]
             self.observation_space, self.action_space = new_obs, new_act
             self.policy.observation_space, self.policy.action_space = new_obs, new_act
         if self.replay_buffer is not None and (
@@ -475,14 +460,3 @@ class TwoStageSAC(OffPolicyAlgorithm):
             else:
                 variables.append(fixed)
         return state_dicts, variables
-
-
-@th.no_grad()
-def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
-    """SB3's :func:`~stable_baselines3.common.utils.polyak_update` (θ' ← (1 − τ)·θ' + τ·θ, the same arithmetic) with
-    one multi-tensor kernel per operation instead of a Python loop over the parameters."""
-    params, target_params = list(params), list(target_params)
-    if len(params) != len(target_params):
-        raise ValueError(f"{len(params)} parameters but {len(target_params)} target parameters")
-    th._foreach_mul_(target_params, 1 - tau)
-    th._foreach_add_(target_params, params, alpha=tau)
