@@ -15,6 +15,10 @@ import numpy as np
 from gymnasium import spaces
 from scipy.spatial.distance import cdist
 
+from envs.arrival import Arrival, ArrivalState, make_arrival
+from envs.layout import ObsLayout
+from envs.rendering import RenderSnapshot, render_ansi, render_rgb
+
 #: Upper bound declared for the float features of the observation space (values are far below it in practice).
 FEATURE_HIGH = 1e6
 #: Tolerance used when comparing supplied resources to demands.
@@ -229,8 +233,10 @@ class TaskAllocEnv(gym.Env):
         self.has_positions = entities.positions is not None
 
         N, M, K = self.max_entities, self.max_tasks, self.K
-        self.n_entity_features = K + 5
-        self.n_task_features = K + 4
+        #: Columns of ``entity_features`` and ``task_features``.
+        self.layout = ObsLayout(K)
+        self.n_entity_features = self.layout.n_entity_features
+        self.n_task_features = self.layout.n_task_features
         f32 = np.float32
         self.observation_space = spaces.Dict(
             {
@@ -264,6 +270,7 @@ class TaskAllocEnv(gym.Env):
         self._metric = {"none": "euclidean", "manhattan": "cityblock", "chebyshev": "chebyshev"}[travel]
         self._eye = np.vstack([np.eye(M), np.zeros((1, M))])  # row M (= row -1) is "no task"
         self._entity_index = np.arange(N)
+        self._arrival: Arrival = make_arrival(arrival, len(tasks.rows), tasks.towers, self.arrival_count, grid_size)
         self._state_ready = False
 
     # ------------------------------------------------------------------ state
@@ -284,7 +291,6 @@ class TaskAllocEnv(gym.Env):
         self._tpos = np.zeros((M, 2))
         self._age = np.zeros(M, dtype=np.int64)
         self._tower = np.full(M, -1, dtype=np.int64)  # EPT: tower that is the task
-        self._next_ref = 0
         self._open_ext = np.zeros(M + 1, dtype=bool)
         self._dist: np.ndarray | None = None
         self._geom_dirty = True
@@ -297,10 +303,8 @@ class TaskAllocEnv(gym.Env):
             np.full(self.max_entities, self.max_tasks, dtype=np.int64),
             np.zeros(self.max_entities, dtype=bool),
         )
-        if self.arrival == "static":
-            self._place(np.arange(min(len(self.tasks.rows), self.max_tasks)), use_table_positions=True)
-        else:
-            self._arrive()
+        self._arrival.reset()
+        self._arrive()
         return self._obs(), self._info(0, 0.0, 0.0, 0, np.zeros(self.max_entities))
 
     def set_bids(self, bids: np.ndarray) -> None:
@@ -331,39 +335,12 @@ class TaskAllocEnv(gym.Env):
         return np.flatnonzero(~self._occupied)
 
     def _arrive(self) -> None:
-        if self.arrival == "reference":
-            free = self._free_slots()
-            rows = np.arange(self._next_ref, min(self._next_ref + len(free), len(self.tasks.rows)))
-            if self.tasks.towers is not None:  # a tower that is already a task waits for the next refill
-                busy_towers = set(self._tower[self._occupied].tolist())
-                keep = []
-                for r in rows:
-                    if int(self.tasks.towers[r]) in busy_towers:
-                        break
-                    busy_towers.add(int(self.tasks.towers[r]))
-                    keep.append(r)
-                rows = np.asarray(keep, dtype=np.int64)
-            self._next_ref += len(rows)
-            self._place(rows, use_table_positions=True)
-        elif self.arrival == "random":
-            rng = self.np_random
-            count = int(rng.integers(self.arrival_count[0], self.arrival_count[1] + 1))
-            count = min(count, len(self._free_slots()))
-            if self.tasks.towers is not None:  # EPT: a tower not already a task reaches its peak demand
-                eligible = self._alive.copy()
-                eligible[self._tower[self._occupied]] = False
-                candidates = np.flatnonzero(eligible)
-                count = min(count, max(len(candidates) - 1, 0))  # keep at least one tower as a supplier
-                towers = candidates[np.argsort(rng.random(len(candidates)))[:count]]
-                self._place(towers, use_table_positions=True)
-            else:  # one draw for the rows and the cells
-                u = rng.random(3 * count)
-                rows = (u[:count] * len(self.tasks.rows)).astype(np.int64)
-                cells = (u[count:] * (self.grid_size or 1)).astype(np.int64).reshape(count, 2)
-                self._place(rows, use_table_positions=False, cells=cells)
+        state = ArrivalState(self.np_random, len(self._free_slots()), self._tower[self._occupied], self._alive)
+        rows, cells = self._arrival.draw(state)
+        self._place(rows, cells)
 
-    def _place(self, rows: np.ndarray, use_table_positions: bool, cells: np.ndarray | None = None) -> None:
-        """Put table rows ``rows`` into the lowest free slots, at ``cells`` (random arrival) or their table positions."""
+    def _place(self, rows: np.ndarray, cells: np.ndarray | None = None) -> None:
+        """Put table rows ``rows`` into the lowest free slots, at ``cells`` or (None) their table positions."""
         rows = np.asarray(rows, dtype=np.int64)
         if len(rows) == 0:
             return
@@ -381,10 +358,10 @@ class TaskAllocEnv(gym.Env):
             self._tower[slots] = towers
             self._tpos[slots] = self._pos0[towers]
         elif self.has_positions:
-            if use_table_positions and self.tasks.positions is not None:
-                self._tpos[slots] = self.tasks.positions[rows]
-            elif cells is not None:
+            if cells is not None:
                 self._tpos[slots] = cells[: len(slots)]
+            elif self.tasks.positions is not None:
+                self._tpos[slots] = self.tasks.positions[rows]
 
     # ------------------------------------------------------------- queries
 
@@ -404,7 +381,9 @@ class TaskAllocEnv(gym.Env):
             base = self._bid if self.bidding else self._cost0
             if self.has_positions:
                 self._dist = self._distance()
-                if self.tasks.towers is not None:  # EPT: distance × mean wire cost of the pair (B3 fixed: task's own)
+                if (
+                    self.tasks.towers is not None
+                ):  # EPT: distance × mean wire cost of the pair (the task tower's own wire cost)
                     self._pc = base[:, None] + self._dist * (0.5 * (self._wire[:, None] + self._wire[self._tower]))
                 else:
                     self._pc = base[:, None] + self.travel_cost * self._dist
@@ -413,12 +392,12 @@ class TaskAllocEnv(gym.Env):
                 self._pc = np.repeat(base[:, None], self.max_tasks, axis=1)
             # Observation pieces that only change with the geometry (padded rows and empty slots are zero).
             self._pc_obs = (self._pc * (self._present0[:, None] & self._occupied[None, :])).astype(np.float32)
-            K = self.K
-            ef = np.zeros((self.max_entities, K + 5), dtype=np.float32)
-            ef[:, 0] = base * self._alive
-            ef[:, 1 : 1 + K] = self._supply
-            ef[:, 1 + K : 3 + K] = self._pos
-            ef[:, 4 + K] = self._bid
+            lay = self.layout
+            ef = np.zeros((self.max_entities, lay.n_entity_features), dtype=np.float32)
+            ef[:, lay.cost] = base * self._alive
+            ef[:, lay.supply] = self._supply
+            ef[:, lay.position] = self._pos
+            ef[:, lay.bid] = self._bid
             self._ef_static = ef
             self._geom_dirty = False
         self._rem = rem
@@ -445,24 +424,23 @@ class TaskAllocEnv(gym.Env):
     def _obs(self) -> dict[str, np.ndarray]:
         # Padded entities and empty slots hold zeros in every state array, so no masking is needed here.
         self._refresh()
-        M, K = self.max_tasks, self.K
-        f32 = np.float32
+        lay = self.layout
         ef = self._ef_static.copy()  # cost, supply, position, bid: refreshed with the geometry
         if self._dist is not None and self.travel != "none":
-            ef[:, 3 + K] = (self._dist[self._entity_index, self._assigned] + 1.0) * self._committed
+            ef[:, lay.busy] = (self._dist[self._entity_index, self._assigned] + 1.0) * self._committed
         else:
-            ef[:, 3 + K] = self._committed
-        tf = np.empty((M, K + 4), dtype=f32)
-        tf[:, 0] = self._reward
-        tf[:, 1 : 1 + K] = self._rem
-        tf[:, 1 + K : 3 + K] = self._tpos
-        tf[:, 3 + K] = self._age
+            ef[:, lay.busy] = self._committed
+        tf = np.empty((self.max_tasks, lay.n_task_features), dtype=np.float32)
+        tf[:, lay.reward] = self._reward
+        tf[:, lay.demand] = self._rem
+        tf[:, lay.task_position] = self._tpos
+        tf[:, lay.age] = self._age
         return {
             "entity_features": ef,
             "task_features": tf,
-            "entity_supply": ef[:, 1 : 1 + K].copy(),
-            "task_demand": tf[:, 1 : 1 + K].copy(),
-            "task_reward": tf[:, 0].copy(),
+            "entity_supply": ef[:, lay.supply].copy(),
+            "task_demand": tf[:, lay.demand].copy(),
+            "task_reward": tf[:, lay.reward].copy(),
             "pair_cost": self._pc_obs.copy(),
             "entity_mask": self._free.astype(np.int8),
             "task_mask": self._open.astype(np.int8),
@@ -553,7 +531,7 @@ class TaskAllocEnv(gym.Env):
             rewards = float(self._reward @ complete)
             costs = float(income.sum())
             n_complete = int(complete.sum())
-            # Release the teams (used up when `consume`), free the slots, give EPT's task towers back (B6 fixed).
+            # Release the teams (used up when `consume`), free the slots, give EPT's task towers back.
             if self.consume:
                 self._alive &= ~team
                 self._supply[team] = 0.0
@@ -573,7 +551,7 @@ class TaskAllocEnv(gym.Env):
             self._assigned[:] = -1
             self._charge[:] = 0.0
 
-        # Decay (reward and demand × ρ once older than θ; positions untouched, B5/B8 fixed) and changing demand.
+        # Decay (reward and demand × ρ once older than θ; positions untouched) and changing demand.
         self._age += self._occupied
         if self.decay < 1.0:
             factor = np.where(self._age > self.decay_after, self.decay, 1.0)
@@ -586,13 +564,11 @@ class TaskAllocEnv(gym.Env):
             self._demand[:] = self._base_demand
 
         self._t += 1
-        if self.arrival != "static" and self._t % self.arrival_period == 0:
+        if self._arrival.periodic and self._t % self.arrival_period == 0:
             self._arrive()
 
-        terminated = self.one_step or not self._alive.any()
-        if self.arrival != "random":
-            exhausted = self.arrival == "static" or self._next_ref >= len(self.tasks.rows)
-            terminated = terminated or (exhausted and not self._occupied.any())
+        exhausted = self._arrival.exhausted() and not self._occupied.any()
+        terminated = self.one_step or not self._alive.any() or exhausted
         return self._obs(), rewards - costs, bool(terminated), False, self._info(n_complete, rewards, costs, n_invalid, income)
 
     # ------------------------------------------------------------ copying
@@ -638,8 +614,39 @@ class TaskAllocEnv(gym.Env):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'ansi'")
             return None
-        from envs.rendering import render_ansi, render_rgb
-
         if self.render_mode == "ansi":
-            return render_ansi(self)
-        return render_rgb(self)
+            return render_ansi(self.render_snapshot())
+        return render_rgb(self.render_snapshot())
+
+    def render_snapshot(self) -> RenderSnapshot:
+        """What a picture of the current state needs (copies; see :mod:`envs.rendering`)."""
+        if not self._state_ready:
+            raise RuntimeError("call reset() before rendering")
+        return RenderSnapshot(
+            t=self._t,
+            has_positions=self.has_positions,
+            grid_size=self.grid_size,
+            n_entities=self.n_entities,
+            entity_pos=self._pos.copy(),
+            task_pos=self._tpos.copy(),
+            present=self._present0.copy(),
+            alive=self._alive.copy(),
+            free=self._free.copy(),
+            assigned=self._assigned.copy(),
+            shown=self._assigned.copy() if self.busy else np.where(self._last_choice[1], self._last_choice[0], -1),
+            occupied=self._occupied.copy(),
+            reward=self._reward.copy(),
+            remaining=self._rem.copy(),
+        )
+
+    # ------------------------------------------------------------- accessors
+
+    @property
+    def base_costs(self) -> np.ndarray:
+        """(N,) each entity's own base cost from its table (0 for padding): a bidding worker's reservation wage."""
+        return self._cost0.copy()
+
+    @property
+    def bids(self) -> np.ndarray:
+        """(N,) the bids posted with :meth:`set_bids` (0 before any)."""
+        return self._bid.copy()

@@ -1,17 +1,18 @@
-"""Rendering of task-allocation environments: ``rgb_array`` frames, ``ansi`` text and episode GIFs."""
+"""Rendering of task-allocation environments: ``rgb_array`` frames, ``ansi`` text and episode GIFs.
+
+The renderers draw a :class:`RenderSnapshot` (``env.unwrapped.render_snapshot()``), never the env itself.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from PIL import Image, ImageDraw
-
-if TYPE_CHECKING:
-    from envs.core import TaskAllocEnv
 
 SIZE = 400
 MARGIN = 20
@@ -21,64 +22,81 @@ ENTITY_BUSY = (255, 127, 14)
 LINE_COLOR = (120, 120, 120)
 
 
-def _layout(env: TaskAllocEnv) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class RenderSnapshot:
+    """What a picture of one state needs (N padded entities, M task slots)."""
+
+    t: int  # step
+    has_positions: bool  # entities and tasks have cells (else a bipartite layout)
+    grid_size: int | None  # side of the grid (None: the extent of the cells)
+    n_entities: int  # real (unpadded) entities
+    entity_pos: np.ndarray  # (N, 2) cells
+    task_pos: np.ndarray  # (M, 2) cells
+    present: np.ndarray  # (N,) bool: real entity
+    alive: np.ndarray  # (N,) bool: not used up
+    free: np.ndarray  # (N,) bool: free to be assigned
+    assigned: np.ndarray  # (N,) task slot the entity is committed to, −1 if none
+    shown: np.ndarray  # (N,) task slot to draw a line to (the commitment, or the last step's choice), −1 if none
+    occupied: np.ndarray  # (M,) bool: slot holds a task
+    reward: np.ndarray  # (M,) current rewards
+    remaining: np.ndarray  # (M, K) remaining demand
+
+
+def _layout(snap: RenderSnapshot) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates of entities (N, 2) and task slots (M, 2)."""
-    N, M = env.max_entities, env.max_tasks
-    if env.has_positions:
-        extent = float(env.grid_size or max(env._pos.max(), env._tpos.max(), 1) + 1)
+    N, M = len(snap.present), len(snap.occupied)
+    if snap.has_positions:
+        extent = float(snap.grid_size or max(snap.entity_pos.max(), snap.task_pos.max(), 1) + 1)
         scale = (SIZE - 2 * MARGIN) / max(extent - 1, 1)
         jitter = np.stack([np.cos(np.arange(N) * 2.4), np.sin(np.arange(N) * 2.4)], 1) * min(scale * 0.3, 6)
-        ent = MARGIN + env._pos * scale + jitter
-        task = MARGIN + env._tpos * scale
-    else:  # bipartite layout: entities on the left, tasks on the right
-        ent = np.stack([np.full(N, SIZE * 0.2), np.linspace(MARGIN, SIZE - MARGIN, N)], 1)
-        task = np.stack([np.full(M, SIZE * 0.8), np.linspace(MARGIN * 2, SIZE - MARGIN * 2, M)], 1)
+        return MARGIN + snap.entity_pos * scale + jitter, MARGIN + snap.task_pos * scale
+    # bipartite layout: entities on the left, tasks on the right
+    ent = np.stack([np.full(N, SIZE * 0.2), np.linspace(MARGIN, SIZE - MARGIN, N)], 1)
+    task = np.stack([np.full(M, SIZE * 0.8), np.linspace(MARGIN * 2, SIZE - MARGIN * 2, M)], 1)
     return ent, task
 
 
-def render_rgb(env: TaskAllocEnv) -> np.ndarray:
+def render_rgb(snap: RenderSnapshot) -> np.ndarray:
     """A (SIZE, SIZE, 3) uint8 frame: tasks as red squares (size ~ reward), entities as dots (orange when
     committed), a grey line from each committed entity to its task."""
     img = Image.new("RGB", (SIZE, SIZE), (255, 255, 255))
     draw = ImageDraw.Draw(img)
-    if env.has_positions and env.grid_size and env.grid_size <= 20:
-        step = (SIZE - 2 * MARGIN) / max(env.grid_size - 1, 1)
-        for k in range(env.grid_size):
+    if snap.has_positions and snap.grid_size and snap.grid_size <= 20:
+        step = (SIZE - 2 * MARGIN) / max(snap.grid_size - 1, 1)
+        for k in range(snap.grid_size):
             p = MARGIN + k * step
             draw.line([(p, MARGIN), (p, SIZE - MARGIN)], fill=(235, 235, 235))
             draw.line([(MARGIN, p), (SIZE - MARGIN, p)], fill=(235, 235, 235))
-    ent, task = _layout(env)
-    assigned = env._assigned if env.busy else env.applied_action()
-    for i in np.flatnonzero(env._present0).tolist():
-        slot = int(assigned[i])
-        if 0 <= slot < env.max_tasks and env._occupied[slot]:
+    ent, task = _layout(snap)
+    for i in np.flatnonzero(snap.present).tolist():
+        slot = int(snap.shown[i])
+        if slot >= 0 and snap.occupied[slot]:
             draw.line([tuple(ent[i]), tuple(task[slot])], fill=LINE_COLOR)
-    rmax = max(float(env._reward.max(initial=0.0)), 1e-6)
-    for slot in np.flatnonzero(env._occupied).tolist():
-        r = 4 + 8 * float(env._reward[slot]) / rmax
+    rmax = max(float(snap.reward.max(initial=0.0)), 1e-6)
+    for slot in np.flatnonzero(snap.occupied).tolist():
+        r = 4 + 8 * float(snap.reward[slot]) / rmax
         x, y = task[slot]
         draw.rectangle([x - r, y - r, x + r, y + r], outline=TASK_COLOR, width=2)
-    for k in np.flatnonzero(env._present0 & env._alive).tolist():
+    for k in np.flatnonzero(snap.present & snap.alive).tolist():
         x, y = ent[k]
-        color = ENTITY_BUSY if env._assigned[k] >= 0 else ENTITY_FREE
+        color = ENTITY_BUSY if snap.assigned[k] >= 0 else ENTITY_FREE
         draw.ellipse([x - 2.5, y - 2.5, x + 2.5, y + 2.5], fill=color)
-    draw.text((4, 2), f"t={env._t}", fill=(0, 0, 0))
+    draw.text((4, 2), f"t={snap.t}", fill=(0, 0, 0))
     return np.asarray(img, dtype=np.uint8)
 
 
-def render_ansi(env: TaskAllocEnv) -> str:
+def render_ansi(snap: RenderSnapshot) -> str:
     """Text summary: one line per occupied task slot, then the entity counts."""
-    rem = env._rem
-    lines = [f"t={env._t}  tasks (slot: reward | remaining demand | team | position)"]
-    for j in np.flatnonzero(env._occupied):
-        team = np.flatnonzero(env._assigned == j).tolist()
-        demand = " ".join(f"{v:.1f}" for v in rem[j])
-        pos = f" @({env._tpos[j, 0]},{env._tpos[j, 1]})" if env.has_positions else ""
-        lines.append(f"  [{j}] {env._reward[j]:.2f} | {demand} | {team}{pos}")
-    free = int(env._free.sum())
-    busy = int((env._assigned >= 0).sum())
-    used = int((env._present0 & ~env._alive).sum())
-    lines.append(f"entities: {free} free, {busy} committed, {used} used up, of {env.n_entities}")
+    lines = [f"t={snap.t}  tasks (slot: reward | remaining demand | team | position)"]
+    for j in np.flatnonzero(snap.occupied):
+        team = np.flatnonzero(snap.assigned == j).tolist()
+        demand = " ".join(f"{v:.1f}" for v in snap.remaining[j])
+        pos = f" @({snap.task_pos[j, 0]},{snap.task_pos[j, 1]})" if snap.has_positions else ""
+        lines.append(f"  [{j}] {snap.reward[j]:.2f} | {demand} | {team}{pos}")
+    free = int(snap.free.sum())
+    busy = int((snap.assigned >= 0).sum())
+    used = int((snap.present & ~snap.alive).sum())
+    lines.append(f"entities: {free} free, {busy} committed, {used} used up, of {snap.n_entities}")
     return "\n".join(lines) + "\n"
 
 

@@ -7,8 +7,6 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 DATA_DIR = Path(__file__).resolve().parent / "data"
 
 
@@ -25,11 +23,3 @@ def load_table(name: str) -> dict[str, Any]:
     with path.open() as f:
         return json.load(f)
 
-
-def table_array(name: str, key: str) -> np.ndarray:
-    """One array of a data table, e.g. ``table_array("rbf", "entities_train_100")``."""
-    data = load_table(name)
-    if key not in data:
-        arrays = sorted(k for k, v in data.items() if isinstance(v, list))
-        raise ValueError(f"table {name!r} has no array {key!r}; arrays: {arrays}")
-    return np.asarray(data[key], dtype=np.float64)

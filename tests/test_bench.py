@@ -11,7 +11,7 @@ import json
 import pytest
 import torch
 
-from sb3_taskalloc import bench
+from sb3_taskalloc.experiments import bench
 
 
 @pytest.mark.parametrize(

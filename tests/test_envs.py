@@ -240,7 +240,7 @@ def test_deepcopy_continues_identically(env_id):
         obs = o1
     # The clone does not share mutable state.
     clone.step(random_valid_action(obs, rng))
-    assert clone._t == env._t + 1
+    assert clone.render_snapshot().t == env.render_snapshot().t + 1
 
 
 def test_reference_arrival_schedule():
@@ -283,7 +283,7 @@ def test_bidding_charges_bids():
     obs, _ = env.reset(seed=0)
     bids = np.linspace(0.1, 1.0, env.n_entities)
     env.set_bids(bids)
-    obs = env._obs()
+    obs = env.observe()
     open_ = obs["task_mask"].astype(bool)
     np.testing.assert_allclose(obs["pair_cost"][:, open_], np.repeat(bids[:, None], open_.sum(), 1), rtol=1e-6)
     np.testing.assert_allclose(obs["entity_features"][:, -1], bids, rtol=1e-6)

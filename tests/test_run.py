@@ -129,7 +129,7 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
     """``make demo``'s entry point, on a short budget: it compares with the baselines and writes what it promises."""
     import json
 
-    from sb3_taskalloc import demo
+    from sb3_taskalloc.experiments import demo
 
     demo.main(["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--eval-episodes", "1", "--threads", "1", "--out", str(tmp_path)])
     record = json.loads((tmp_path / "results.json").read_text())

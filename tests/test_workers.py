@@ -10,7 +10,8 @@ import torch as th
 from envs.rendering import random_valid_action
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.baselines import GreedyAllocator
-from sb3_taskalloc.workers import BiddingWorkers, WorkerMarket, co_train, make_market, run_manager, worker_observations
+from sb3_taskalloc.experiments.cotrain import co_train, run_manager
+from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, make_market, worker_observations
 
 
 class RandomManager:
@@ -77,7 +78,7 @@ def test_bids_in_range_and_wages_are_the_charged_costs(env_id):
 def test_worker_observations_offer_the_nearest_open_task():
     env = gym.make("TaskAlloc/RBF-v0", bidding=True)
     obs, _ = env.reset(seed=3)
-    idx, task, x = worker_observations(obs, env.unwrapped._cost0)
+    idx, task, x = worker_observations(obs, env.unwrapped.base_costs, env.unwrapped.layout)
     K = 3
     assert np.array_equal(idx, np.flatnonzero(obs["entity_mask"])) and x.shape == (len(idx), 2 * K + 8)
     pe = obs["entity_features"][idx, 1 + K : 3 + K]
@@ -152,7 +153,7 @@ def test_workers_raise_bids_but_stay_picked():
 def test_ddpg_config_blocks_build_workers(tmp_path):
     from pathlib import Path
 
-    from sb3_taskalloc.workers import load_worker_config
+    from sb3_taskalloc.market import load_worker_config
 
     path = Path(__file__).resolve().parents[1] / "zoo_configs/ddpg.yml"
     for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"):
@@ -166,7 +167,7 @@ def test_ddpg_config_blocks_build_workers(tmp_path):
 
 
 def test_cli_with_a_frozen_greedy_manager(tmp_path):
-    from sb3_taskalloc.workers import main
+    from sb3_taskalloc.workers import main  # the CLI entry point
 
     main(["--manager", "greedy", "--timesteps", "120", "--out", str(tmp_path), "--seed", "1"])
     rows = (tmp_path / "incomes.csv").read_text().strip().splitlines()

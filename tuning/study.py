@@ -255,10 +255,11 @@ def summarize(study: optuna.Study, env_id: str, folder: Path) -> dict[str, Any]:
     header = f"# Best of study {study.study_name!r}: trial {study.best_trial.number}, mean return {study.best_value:.4g}\n"
     (folder / "best.yml").write_text(header + yaml.safe_dump(block, sort_keys=False))
     if len(complete) >= 2:
-        import matplotlib
-
-        matplotlib.use("Agg")
         from optuna.importance import PedAnovaImportanceEvaluator
+
+        from sb3_taskalloc.experiments.plots import pyplot, save_figure
+
+        pyplot()  # the headless backend before optuna's matplotlib module loads
         from optuna.visualization.matplotlib import plot_param_importances
 
         try:
@@ -267,8 +268,7 @@ def summarize(study: optuna.Study, env_id: str, folder: Path) -> dict[str, Any]:
                 ax = plot_param_importances(study, evaluator=PedAnovaImportanceEvaluator())
             figure = ax.get_figure(root=True)
             assert figure is not None
-            figure.tight_layout()
-            figure.savefig(folder / "importance.png", dpi=120)
+            save_figure(figure, folder / "importance.png", dpi=120)
         except (ValueError, RuntimeError) as error:  # too few distinct trials for an importance estimate
             print(f"no importance plot: {error}")
     print(f"best trial {study.best_trial.number}: {study.best_value:.4g}\n{header}{yaml.safe_dump(block, sort_keys=False)}")

@@ -7,8 +7,9 @@ import csv
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_taskalloc.experiments.plots import plot_almighty
 
 VARIANTS = {
     "pre-assign (ours)": {},
@@ -43,10 +44,6 @@ class DeterministicReturn(BaseCallback):
 def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str | Path = "results/almighty") -> Path:
     """Train the three variants (``learning_rate=1e-3``, ``learning_starts=200``, as the learning check) and write
     ``almighty.csv`` (variant, seed, step, return) and ``almighty.png`` (mean and range over seeds, optimum 35)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from tqdm.auto import tqdm
 
     from sb3_taskalloc import TwoStageSAC
@@ -68,20 +65,4 @@ def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str
         for name, runs in curves.items():
             for seed, points in enumerate(runs):
                 writer.writerows([name, seed, step, value] for step, value in points)
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for i, (name, runs) in enumerate(curves.items()):
-        n = min(len(r) for r in runs)
-        x = np.array([p[0] for p in runs[0][:n]])
-        y = np.array([[p[1] for p in r[:n]] for r in runs])
-        ax.plot(x, y.mean(0), color=f"C{i}", lw=2, label=name)
-        ax.fill_between(x, y.min(0), y.max(0), color=f"C{i}", alpha=0.15)
-    ax.axhline(35, color="k", ls="--", lw=1, label="optimum (35)")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("deterministic return")
-    ax.set_title(f"Retain the Almighty: mean and range over {seeds} seeds")
-    ax.legend(loc="lower right")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(folder / "almighty.png", dpi=110)
-    plt.close(fig)
-    return folder / "almighty.png"
+    return plot_almighty(curves, folder / "almighty.png")

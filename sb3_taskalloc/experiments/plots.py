@@ -1,11 +1,32 @@
-"""Plots of the experiments (matplotlib, headless)."""
+"""Every figure of the experiments (matplotlib, headless): learning curves, the Almighty figure, market incomes."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the headless Agg backend (imported on first use: the library never needs it)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> Path:
+    """Lay out, write (creating the folder) and close ``fig``; returns the path."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return path
 
 
 def smooth(values: np.ndarray, window: int = 11) -> np.ndarray:
@@ -28,11 +49,7 @@ def plot_learning_curve(
     xlabel: str = "episode",
 ) -> Path:
     """Episode returns (raw, faint; smoothed, solid) with horizontal lines for baselines. Returns the PNG path."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     for i, (name, values) in enumerate(curves.items()):
         color = f"C{i}"
@@ -47,9 +64,47 @@ def plot_learning_curve(
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
+
+
+def plot_incomes(history: list[dict[str, float]], path: str | Path, title: str = "") -> Path:
+    """Manager, worker and total income per episode (the paper's RBF figure f), the workers' mean bid on a second axis."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ep = np.arange(len(history))
+    for key, label in (("total_income", "total"), ("manager_income", "manager"), ("worker_income", "workers")):
+        ax.plot(ep, [h[key] for h in history], label=label)
+    ax.set_xlabel("episode")
+    ax.set_ylabel("income per episode")
+    ax2 = ax.twinx()
+    ax2.plot(ep, [h["mean_bid"] for h in history], color="grey", linestyle=":", label="mean bid")
+    ax2.set_ylabel("mean bid")
+    lines = ax.get_legend_handles_labels()
+    lines2 = ax2.get_legend_handles_labels()
+    ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="best")
+    ax.set_title(title)
+    return save_figure(fig, path, dpi=120)
+
+
+def plot_almighty(curves: Mapping[str, list[list[tuple[int, float]]]], path: str | Path, optimum: float = 35.0) -> Path:
+    """Deterministic return against env steps on Almighty for each variant: mean and range over seeds, and the optimum.
+
+    :param curves: variant -> one list of (step, return) points per seed
+    """
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    n_seeds = 0
+    for i, (name, runs) in enumerate(curves.items()):
+        n = min(len(r) for r in runs)
+        x = np.array([p[0] for p in runs[0][:n]])
+        y = np.array([[p[1] for p in r[:n]] for r in runs])
+        ax.plot(x, y.mean(0), color=f"C{i}", lw=2, label=name)
+        ax.fill_between(x, y.min(0), y.max(0), color=f"C{i}", alpha=0.15)
+        n_seeds = len(runs)
+    ax.axhline(optimum, color="k", ls="--", lw=1, label=f"optimum ({optimum:g})")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("deterministic return")
+    ax.set_title(f"Retain the Almighty: mean and range over {n_seeds} seeds")
+    ax.legend(loc="lower right")
+    ax.grid(alpha=0.3)
+    return save_figure(fig, path)

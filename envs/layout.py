@@ -1,0 +1,67 @@
+"""The column layout of the ``entity_features`` and ``task_features`` observations, defined once.
+
+Every ``TaskAlloc`` env exposes its layout as ``env.unwrapped.layout``; code that reads a column by meaning (the bidding
+market, tests) asks the layout instead of repeating offsets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ObsLayout:
+    """Columns of the padded feature matrices for K resources.
+
+    ``entity_features`` (N, K + 5): cost, supply (K), x, y, busy, bid. ``task_features`` (M, K + 4): reward,
+    remaining demand (K), x, y, age.
+
+    :param n_resources: K
+    """
+
+    n_resources: int
+
+    # entity_features
+    cost: int = 0
+
+    @property
+    def supply(self) -> slice:
+        return slice(1, 1 + self.n_resources)
+
+    @property
+    def position(self) -> slice:
+        """The entity's cell (x, y)."""
+        return slice(1 + self.n_resources, 3 + self.n_resources)
+
+    @property
+    def busy(self) -> int:
+        """Steps to arrival + 1 while committed (1 when there is no travel), 0 when free."""
+        return 3 + self.n_resources
+
+    @property
+    def bid(self) -> int:
+        return 4 + self.n_resources
+
+    @property
+    def n_entity_features(self) -> int:
+        return 5 + self.n_resources
+
+    # task_features
+    reward: int = 0
+
+    @property
+    def demand(self) -> slice:
+        return slice(1, 1 + self.n_resources)
+
+    @property
+    def task_position(self) -> slice:
+        """The task's cell (x, y)."""
+        return slice(1 + self.n_resources, 3 + self.n_resources)
+
+    @property
+    def age(self) -> int:
+        return 3 + self.n_resources
+
+    @property
+    def n_task_features(self) -> int:
+        return 4 + self.n_resources
