@@ -15,10 +15,11 @@ from typing import Any
 from gymnasium.envs.registration import register, registry
 
 from envs.almighty import AlmightyEnv, almighty_tables
-from envs.core import EntityTable, TaskAllocEnv, TaskTable
+from envs.core import TaskAllocEnv
 from envs.ept import EPTEnv
 from envs.mt import MTEnv, generate_trucks
 from envs.rbf import RBFEnv
+from envs.tables import EntityTable, TaskTable
 
 #: id -> (entry point, kwargs, max_episode_steps). Presets are data: the same classes with other kwargs.
 ENV_SPECS: dict[str, tuple[str, dict[str, Any], int]] = {

@@ -7,7 +7,6 @@ configured by data tables and keyword arguments (``envs/almighty.py``, ``ept.py`
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
@@ -18,69 +17,11 @@ from scipy.spatial.distance import cdist
 from envs.arrival import Arrival, ArrivalState, make_arrival
 from envs.layout import ObsLayout
 from envs.rendering import RenderSnapshot, render_ansi, render_rgb
+from envs.tables import EntityTable, TaskTable
+from envs.validation import EPS, check_action, check_config
 
 #: Upper bound declared for the float features of the observation space (values are far below it in practice).
 FEATURE_HIGH = 1e6
-#: Tolerance used when comparing supplied resources to demands.
-EPS = 1e-6
-
-
-@dataclass
-class TaskTable:
-    """Tasks that can arrive.
-
-    :param rows: (T, 1 + K) array of ``[reward, demand_1..demand_K]``
-    :param positions: optional (T, 2) integer cells used by ``arrival="reference"``
-    :param towers: optional (T,) tower index of each task (EPT: the task is a tower that is then not an entity)
-    """
-
-    rows: np.ndarray
-    positions: np.ndarray | None = None
-    towers: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        self.rows = np.asarray(self.rows, dtype=np.float64)
-        if self.rows.ndim != 2 or self.rows.shape[1] < 2:
-            raise ValueError(f"task table must be (T, 1 + K) = [reward, demands...], got shape {self.rows.shape}")
-        if self.positions is not None:
-            self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
-            if len(self.positions) != len(self.rows):
-                raise ValueError("task positions must have one row per task")
-        if self.towers is not None:
-            self.towers = np.asarray(self.towers, dtype=np.int64).reshape(-1)
-
-    @property
-    def n_resources(self) -> int:
-        return self.rows.shape[1] - 1
-
-
-@dataclass
-class EntityTable:
-    """Entities (robots, trucks, towers, workers).
-
-    :param cost: (n,) base cost of using the entity once
-    :param supply: (n, K) resources the entity brings
-    :param positions: optional (n, 2) start cells
-    :param wire_cost: optional (n,) per-unit-distance cost (EPT: pair cost = distance × mean wire cost of the pair)
-    """
-
-    cost: np.ndarray
-    supply: np.ndarray
-    positions: np.ndarray | None = None
-    wire_cost: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        self.cost = np.asarray(self.cost, dtype=np.float64).reshape(-1)
-        self.supply = np.asarray(self.supply, dtype=np.float64)
-        if self.supply.ndim != 2 or len(self.supply) != len(self.cost):
-            raise ValueError(f"entity supply must be (n, K) with n = {len(self.cost)}, got shape {self.supply.shape}")
-        if self.positions is not None:
-            self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
-        if self.wire_cost is not None:
-            self.wire_cost = np.asarray(self.wire_cost, dtype=np.float64).reshape(-1)
-
-    def __len__(self) -> int:
-        return len(self.cost)
 
 
 class TaskAllocEnv(gym.Env):
@@ -189,26 +130,10 @@ class TaskAllocEnv(gym.Env):
         self.n_entities = n
         self.max_entities = int(max_entities) if max_entities is not None else n
         self.max_tasks = int(max_tasks)
-        if self.max_entities < n:
-            raise ValueError(f"max_entities={self.max_entities} is smaller than the {n} entities of the table")
-        if self.max_tasks < 1:
-            raise ValueError(f"max_tasks must be >= 1, got {self.max_tasks}")
-        if tasks.n_resources != entities.supply.shape[1]:
-            raise ValueError(
-                f"tasks demand {tasks.n_resources} resources but entities supply {entities.supply.shape[1]}: K must match"
-            )
-        if travel not in ("none", "manhattan", "chebyshev"):
-            raise ValueError(f"travel must be 'none', 'manhattan' or 'chebyshev', got {travel!r}")
-        if arrival not in ("random", "reference", "static"):
-            raise ValueError(f"arrival must be 'random', 'reference' or 'static', got {arrival!r}")
-        if arrival_count[0] < 0 or arrival_count[1] < arrival_count[0]:
-            raise ValueError(f"arrival_count must be an increasing (low, high) pair, got {arrival_count}")
-        if not 0.0 < decay <= 1.0:
-            raise ValueError(f"decay must lie in (0, 1], got {decay}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
-        if travel != "none" and (entities.positions is None or grid_size is None):
-            raise ValueError("travel needs entity positions and a grid_size")
+        check_config(
+            entities, tasks, self.max_entities, self.max_tasks, travel, arrival, arrival_count, decay, grid_size, render_mode,
+            self.metadata["render_modes"],
+        )  # fmt: skip
 
         self.entities = entities
         self.tasks = tasks
@@ -458,36 +383,10 @@ class TaskAllocEnv(gym.Env):
 
     # ----------------------------------------------------------------- step
 
-    def _validate_action(self, action: Any) -> np.ndarray:
-        N, M = self.max_entities, self.max_tasks
-        if type(action) is np.ndarray and action.dtype == np.int64 and action.shape == (N,):  # fast path
-            if action.min() < 0 or action.max() > M:
-                raise ValueError(
-                    f"action values must lie in [0, {M}] (M = {M} means 'unassigned'), got [{action.min()}, {action.max()}]"
-                )
-            return action
-        a = np.asarray(action)
-        if a.shape != (N,):
-            if a.size != N:
-                raise ValueError(f"action must have shape ({N},) (one task slot per entity), got shape {a.shape}")
-            a = a.reshape(N)
-        if a.dtype.kind == "f":
-            if not np.all(np.isfinite(a)):
-                raise ValueError("action contains NaN or infinite values; expected integers in [0, max_tasks]")
-            if not np.all(a == np.round(a)):
-                raise ValueError("action contains non-integer values; expected integers in [0, max_tasks]")
-            a = a.astype(np.int64)
-        elif a.dtype.kind not in "iub":
-            raise ValueError(f"action must be an integer array, got dtype {a.dtype}")
-        lo, hi = a.min(), a.max()
-        if lo < 0 or hi > M:
-            raise ValueError(f"action values must lie in [0, {M}] (M = {M} means 'unassigned'), got [{lo}, {hi}]")
-        return a
-
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if not self._state_ready:
             raise RuntimeError("call reset() before step()")
-        a = self._validate_action(action)
+        a = check_action(action, self.max_entities, self.max_tasks)
         M = self.max_tasks
         chosen = a < M
         valid = chosen & self._free & self._open_ext[a]

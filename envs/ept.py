@@ -6,8 +6,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from envs.core import EntityTable, TaskAllocEnv, TaskTable
-from envs.tables import load_table
+from envs.core import TaskAllocEnv
+from envs.tables import EntityTable, TaskTable, load_table
 
 
 class EPTEnv(TaskAllocEnv):

@@ -1,11 +1,15 @@
-"""Data tables of the environments (``envs/data/*.json``; provenance in ``envs/data/PROVENANCE.md``)."""
+"""Data of the environments: the JSON tables shipped with the package (``envs/data/*.json``, provenance in
+``envs/data/PROVENANCE.md``) and the entity and task tables an env is built from."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 
@@ -23,3 +27,60 @@ def load_table(name: str) -> dict[str, Any]:
     with path.open() as f:
         return json.load(f)
 
+
+@dataclass
+class TaskTable:
+    """Tasks that can arrive.
+
+    :param rows: (T, 1 + K) array of ``[reward, demand_1..demand_K]``
+    :param positions: optional (T, 2) integer cells used by ``arrival="reference"``
+    :param towers: optional (T,) tower index of each task (EPT: the task is a tower that is then not an entity)
+    """
+
+    rows: np.ndarray
+    positions: np.ndarray | None = None
+    towers: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.rows = np.asarray(self.rows, dtype=np.float64)
+        if self.rows.ndim != 2 or self.rows.shape[1] < 2:
+            raise ValueError(f"task table must be (T, 1 + K) = [reward, demands...], got shape {self.rows.shape}")
+        if self.positions is not None:
+            self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
+            if len(self.positions) != len(self.rows):
+                raise ValueError("task positions must have one row per task")
+        if self.towers is not None:
+            self.towers = np.asarray(self.towers, dtype=np.int64).reshape(-1)
+
+    @property
+    def n_resources(self) -> int:
+        return self.rows.shape[1] - 1
+
+
+@dataclass
+class EntityTable:
+    """Entities (robots, trucks, towers, workers).
+
+    :param cost: (n,) base cost of using the entity once
+    :param supply: (n, K) resources the entity brings
+    :param positions: optional (n, 2) start cells
+    :param wire_cost: optional (n,) per-unit-distance cost (EPT: pair cost = distance × mean wire cost of the pair)
+    """
+
+    cost: np.ndarray
+    supply: np.ndarray
+    positions: np.ndarray | None = None
+    wire_cost: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.cost = np.asarray(self.cost, dtype=np.float64).reshape(-1)
+        self.supply = np.asarray(self.supply, dtype=np.float64)
+        if self.supply.ndim != 2 or len(self.supply) != len(self.cost):
+            raise ValueError(f"entity supply must be (n, K) with n = {len(self.cost)}, got shape {self.supply.shape}")
+        if self.positions is not None:
+            self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
+        if self.wire_cost is not None:
+            self.wire_cost = np.asarray(self.wire_cost, dtype=np.float64).reshape(-1)
+
+    def __len__(self) -> int:
+        return len(self.cost)

@@ -148,6 +148,8 @@ def test_random_actions_keep_invariants(env_id):
         (np.full(100, np.nan), "NaN"),
         (np.full(100, 0.5), "non-integer"),
         (np.array(["a"] * 100), "dtype"),
+        (np.full((2, 50), 10), r"shape \(100,\)"),  # the right size in the wrong shape is not reshaped
+        (np.ones(100, dtype=bool), "dtype bool"),
     ],
 )
 def test_out_of_space_actions_raise(action, match):
