@@ -6,22 +6,18 @@ configured by data tables and keyword arguments (``envs/almighty.py``, ``ept.py`
 
 from __future__ import annotations
 
-import copy
 from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from scipy.spatial.distance import cdist
 
 from envs.arrival import Arrival, ArrivalState, make_arrival
+from envs.geometry import Travel, distances, pair_costs, travel_step
 from envs.layout import ObsLayout
 from envs.rendering import RenderSnapshot, render_ansi, render_rgb
-from envs.tables import EntityTable, TaskTable
+from envs.tables import EntityTable, TaskTable, clone
 from envs.validation import EPS, check_action, check_config
-
-#: Upper bound declared for the float features of the observation space (values are far below it in practice).
-FEATURE_HIGH = 1e6
 
 
 class TaskAllocEnv(gym.Env):
@@ -83,7 +79,7 @@ class TaskAllocEnv(gym.Env):
         max_entities: int | None = None,
         max_tasks: int = 10,
         grid_size: int | None = None,
-        travel: Literal["none", "manhattan", "chebyshev"] = "none",
+        travel: Travel = "none",
         travel_cost: float = 0.0,
         busy: bool = True,
         consume: bool = False,
@@ -162,20 +158,7 @@ class TaskAllocEnv(gym.Env):
         self.layout = ObsLayout(K)
         self.n_entity_features = self.layout.n_entity_features
         self.n_task_features = self.layout.n_task_features
-        f32 = np.float32
-        self.observation_space = spaces.Dict(
-            {
-                "entity_features": spaces.Box(0.0, FEATURE_HIGH, (N, self.n_entity_features), f32),
-                "task_features": spaces.Box(0.0, FEATURE_HIGH, (M, self.n_task_features), f32),
-                "entity_supply": spaces.Box(0.0, FEATURE_HIGH, (N, K), f32),
-                "task_demand": spaces.Box(0.0, FEATURE_HIGH, (M, K), f32),
-                "task_reward": spaces.Box(0.0, FEATURE_HIGH, (M,), f32),
-                "pair_cost": spaces.Box(0.0, FEATURE_HIGH, (N, M), f32),
-                "entity_mask": spaces.MultiBinary(N),
-                "task_mask": spaces.MultiBinary(M),
-                "action_mask": spaces.MultiBinary(N * (M + 1)),
-            }
-        )
+        self.observation_space = self.layout.observation_space(N, M)
         self.action_space = spaces.MultiDiscrete(np.full(N, M + 1, dtype=np.int64))
 
         # Static padded entity arrays (never mutated; shared by deep copies).
@@ -192,7 +175,6 @@ class TaskAllocEnv(gym.Env):
         self._present0 = np.zeros(N, dtype=bool)
         self._present0[:n] = True
         self._task_rows = tasks.rows * self.reward_scale
-        self._metric = {"none": "euclidean", "manhattan": "cityblock", "chebyshev": "chebyshev"}[travel]
         self._eye = np.vstack([np.eye(M), np.zeros((1, M))])  # row M (= row -1) is "no task"
         self._entity_index = np.arange(N)
         self._arrival: Arrival = make_arrival(arrival, len(tasks.rows), tasks.towers, self.arrival_count, grid_size)
@@ -290,10 +272,6 @@ class TaskAllocEnv(gym.Env):
 
     # ------------------------------------------------------------- queries
 
-    def _distance(self) -> np.ndarray:
-        """(N, M) distance from every entity to every task slot (travel metric; Euclidean when there is no travel)."""
-        return cdist(self._pos, self._tpos, self._metric)
-
     def _refresh(self) -> None:
         """Recompute the derived quantities (distances, pair costs, remaining demand, masks) after a state change."""
         committed = self._assigned >= 0
@@ -305,13 +283,9 @@ class TaskAllocEnv(gym.Env):
         if self._geom_dirty:  # positions, task slots or bids changed since the last refresh
             base = self._bid if self.bidding else self._cost0
             if self.has_positions:
-                self._dist = self._distance()
-                if (
-                    self.tasks.towers is not None
-                ):  # EPT: distance × mean wire cost of the pair (the task tower's own wire cost)
-                    self._pc = base[:, None] + self._dist * (0.5 * (self._wire[:, None] + self._wire[self._tower]))
-                else:
-                    self._pc = base[:, None] + self.travel_cost * self._dist
+                self._dist = distances(self._pos, self._tpos, self.travel)
+                wire = self._wire if self.tasks.towers is not None else None
+                self._pc = pair_costs(base, self._dist, self.travel_cost, wire, self._tower)
             else:
                 self._dist = None
                 self._pc = np.repeat(base[:, None], self.max_tasks, axis=1)
@@ -405,13 +379,7 @@ class TaskAllocEnv(gym.Env):
 
         # Entities at their task's cell work; the others move one cell towards it.
         if self.travel != "none":
-            delta = self._tpos[self._assigned] - self._pos
-            arrived = committed & ~delta.any(1)
-            move = np.sign(delta)
-            if self.travel == "manhattan":  # 4-neighbour: align y first, then x
-                move[:, 0] *= move[:, 1] == 0
-            move *= committed[:, None]
-            self._pos += move
+            _, arrived = travel_step(self._pos, self._tpos[self._assigned], committed, self.travel)
             self._geom_dirty = True
             working = np.where(arrived, self._assigned, -1)
         else:
@@ -472,40 +440,15 @@ class TaskAllocEnv(gym.Env):
 
     # ------------------------------------------------------------ copying
 
-    _SHARED: ClassVar[tuple[str, ...]] = (
-        "entities",
-        "tasks",
-        "observation_space",
-        "action_space",
-        "_cost0",
-        "_supply0",
-        "_pos0",
-        "_wire",
-        "_present0",
-        "_eye",
-        "_task_rows",
-        "_metric",
-        "_entity_index",
-        "metadata",
-        "spec",
+    #: Attributes that never change after construction: deep copies share them.
+    _SHARED: ClassVar[frozenset[str]] = frozenset(
+        "entities tasks observation_space action_space layout metadata spec _cost0 _supply0 _pos0 _wire _present0 _eye "
+        "_task_rows _entity_index".split()
     )
 
     def __deepcopy__(self, memo: dict[int, Any]) -> TaskAllocEnv:
         """Fast clone for planners: static tables and spaces are shared, the episode state is copied."""
-        new = self.__class__.__new__(self.__class__)
-        memo[id(self)] = new
-        for key, value in self.__dict__.items():
-            if key in self._SHARED:
-                new.__dict__[key] = value
-            elif isinstance(value, np.ndarray):
-                new.__dict__[key] = value.copy()
-            elif key == "_np_random" and value is not None:
-                rng = np.random.Generator(type(value.bit_generator)())
-                rng.bit_generator.state = value.bit_generator.state
-                new.__dict__[key] = rng
-            else:
-                new.__dict__[key] = copy.deepcopy(value, memo)
-        return new
+        return clone(self, memo, self._SHARED)
 
     # ---------------------------------------------------------- rendering
 

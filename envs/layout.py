@@ -8,6 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+from gymnasium import spaces
+
+#: Upper bound declared for the float features of the observation space (values are far below it in practice).
+FEATURE_HIGH = 1e6
+
 
 @dataclass(frozen=True)
 class ObsLayout:
@@ -65,3 +71,20 @@ class ObsLayout:
     @property
     def n_task_features(self) -> int:
         return 4 + self.n_resources
+
+    def observation_space(self, n_entities: int, n_tasks: int) -> spaces.Dict:
+        """The padded ``Dict`` observation space for N = ``n_entities`` entity rows and M = ``n_tasks`` task slots."""
+        N, M, K, f32 = n_entities, n_tasks, self.n_resources, np.float32
+        return spaces.Dict(
+            {
+                "entity_features": spaces.Box(0.0, FEATURE_HIGH, (N, self.n_entity_features), f32),
+                "task_features": spaces.Box(0.0, FEATURE_HIGH, (M, self.n_task_features), f32),
+                "entity_supply": spaces.Box(0.0, FEATURE_HIGH, (N, K), f32),
+                "task_demand": spaces.Box(0.0, FEATURE_HIGH, (M, K), f32),
+                "task_reward": spaces.Box(0.0, FEATURE_HIGH, (M,), f32),
+                "pair_cost": spaces.Box(0.0, FEATURE_HIGH, (N, M), f32),
+                "entity_mask": spaces.MultiBinary(N),
+                "task_mask": spaces.MultiBinary(M),
+                "action_mask": spaces.MultiBinary(N * (M + 1)),
+            }
+        )

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import dataclass
 from functools import cache
@@ -84,3 +85,23 @@ class EntityTable:
 
     def __len__(self) -> int:
         return len(self.cost)
+
+
+def clone(obj: Any, memo: dict[int, Any], shared: frozenset[str]) -> Any:
+    """A deep copy of ``obj`` that shares the attributes named in ``shared``, copies arrays with ``ndarray.copy`` and
+    random generators through their state (both much faster than :func:`copy.deepcopy`): planners clone envs by the
+    thousand."""
+    new = obj.__class__.__new__(obj.__class__)
+    memo[id(obj)] = new
+    for key, value in obj.__dict__.items():
+        if key in shared:
+            new.__dict__[key] = value
+        elif isinstance(value, np.ndarray):
+            new.__dict__[key] = value.copy()
+        elif isinstance(value, np.random.Generator):
+            rng = np.random.Generator(type(value.bit_generator)())
+            rng.bit_generator.state = value.bit_generator.state
+            new.__dict__[key] = rng
+        else:
+            new.__dict__[key] = copy.deepcopy(value, memo)
+    return new
