@@ -442,8 +442,23 @@ class TaskAllocEnv(gym.Env):
 
     #: Attributes that never change after construction: deep copies share them.
     _SHARED: ClassVar[frozenset[str]] = frozenset(
-        "entities tasks observation_space action_space layout metadata spec _cost0 _supply0 _pos0 _wire _present0 _eye "
-        "_task_rows _entity_index".split()
+        [
+            "entities",
+            "tasks",
+            "observation_space",
+            "action_space",
+            "layout",
+            "metadata",
+            "spec",
+            "_cost0",
+            "_supply0",
+            "_pos0",
+            "_wire",
+            "_present0",
+            "_eye",
+            "_task_rows",
+            "_entity_index",
+        ]
     )
 
     def __deepcopy__(self, memo: dict[int, Any]) -> TaskAllocEnv:
