@@ -20,8 +20,8 @@ class EPTEnv(TaskAllocEnv):
     it covers its demand. Demands change every step (relative noise ``demand_noise``) and decay (×0.9 after 10
     steps). A task tower is released back into the pool when its task completes.
 
-    Published-code bugs fixed (reference spec §9): the task tower's own wire cost (B3), only reward and power doubled
-    (B4), decay of reward and power only (B5), the task's own tower released (B6), every empty slot refilled (B7).
+    Differences from the published code, which had these as bugs: the task tower's own wire cost, only reward and
+    power doubled, decay of reward and power only, the task's own tower released, every empty slot refilled.
 
     ## Arguments
 

@@ -37,8 +37,8 @@ class MTEnv(TaskAllocEnv):
     city is its base cost plus ``travel_cost`` × the Chebyshev distance at assignment. Demands older than 15 steps
     decay by 5 % per step.
 
-    Published-code bugs fixed (reference spec §9): decay applies (B8), trucks are consumed (B9), only requirements
-    count toward completion (B10). The episode terminates when every truck is used up.
+    Differences from the published code, which had these as bugs: decay applies, trucks are consumed, only
+    requirements count toward completion. The episode terminates when every truck is used up.
 
     ## Arguments
 

@@ -22,8 +22,8 @@ class RBFEnv(TaskAllocEnv):
     entity for an apple is its base cost plus ``travel_cost`` × the Manhattan distance at assignment. Apples older
     than 10 steps lose 1 % of reward and requirements per step.
 
-    Published-code differences (reference spec §2.4, §9): positions are observed (B13), costs depend on distance (the
-    paper's text), only the committed team counts and pays (B11 restricted to allocated entities), arrival is
+    Differences from the published code: positions are observed, costs depend on distance (the paper's text),
+    only the committed team counts and pays, arrival is
     random as in the paper (``arrival="reference"`` gives the published 30-task list).
 
     ## Arguments

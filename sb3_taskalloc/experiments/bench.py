@@ -218,7 +218,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     devices = _devices(args)
     rows = []
     steps = 20 if args.quick else 100
-    blocks = 1 if args.quick else 3  # the median of three blocks: one block varied by ±10 % between runs here
+    blocks = 1 if args.quick else 3  # the median of three blocks damps the run-to-run spread of one block
     for device in devices:
         for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/EPT-v0", "TaskAlloc/MT-v0", "TaskAlloc/Almighty-v0"):
             if args.quick and env_id != "TaskAlloc/RBF-v0":

@@ -111,7 +111,7 @@ class Budget:
 BUDGETS: dict[str, Budget] = {
     # The paper: 1000 training episodes, 200 fine-tuning episodes, 10 evaluation episodes, planners at full settings.
     "paper": Budget(1000, 200, 10, None),
-    # What fits this 2-core machine in an hour or so per env (TwoStageSAC trains at 8-30 env steps/s on one thread).
+    # A budget for one CPU thread: TwoStageSAC trains at 8-30 env steps/s there, so about an hour per env.
     "local": Budget({"Almighty": 1200, "EPT": 20, "RBF": 20, "MT": 14}, 5, 3, PLANNER_BUDGET, milp={"time_limit": 2.0}),
     # CI: checks the pipeline end to end in seconds; the figures mean nothing.
     "smoke": Budget(
