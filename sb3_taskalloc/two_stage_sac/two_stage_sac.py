@@ -15,11 +15,11 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
 
+import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import foreach_polyak_update
-from sb3_taskalloc.two_stage_sac import losses
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
