@@ -155,6 +155,32 @@ def test_bad_spaces_rejected():
     rbf = gym.make("TaskAlloc/RBF-v0")
     with pytest.raises(ValueError, match="encoder"):
         make_policy(rbf, encoder="cnn")
+    with pytest.raises(ValueError, match="mixer"):
+        make_policy(rbf, mixer="qmix")
+    with pytest.raises(ValueError, match="task_order"):
+        make_policy(rbf, preassign=False, task_order="shuffled")
+
+
+def test_options_that_do_not_apply_are_refused():
+    """``task_order`` orders the tasks of the shared pool: with pre-assignment there is no order to choose."""
+    rbf = gym.make("TaskAlloc/RBF-v0")
+    for order in ("sequential", "random"):
+        with pytest.raises(ValueError, match="only without pre-assignment"):
+            make_policy(rbf, task_order=order)
+    assert make_policy(rbf, preassign=False).task_order == "sequential"
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "agnostic"),
+    [({}, True), ({"preassign": False}, True), ({"encoder": "mlp"}, False), ({"mixer": "global"}, False)],
+)
+def test_size_agnostic_is_declared_by_the_components(kwargs, agnostic):
+    """The policy is size-agnostic exactly when every component it was built from says so."""
+    policy = make_policy(gym.make("TaskAlloc/EPT-v0"), **kwargs)
+    assert policy.size_agnostic is agnostic
+    modules = [m for m in (policy.actor, policy.critic, policy.selector, policy.select_critic) if m is not None]
+    assert all(isinstance(m.size_agnostic, bool) for m in modules)
+    assert policy.size_agnostic == all(m.size_agnostic for m in modules)
 
 
 def test_heuristic_init_follows_the_cost_rules():

@@ -141,3 +141,14 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
     loaded = TwoStageSAC.load(tmp_path / "two_stage_sac.zip", device="cpu")
     assert loaded.num_timesteps == 40
     assert "TwoStageSAC" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("module", ["sb3_taskalloc.bench", "sb3_taskalloc.demo", "sb3_taskalloc.workers"])
+def test_entry_points_answer_help(module):
+    """The README's ``python -m`` commands reach their programs (the modules live under ``experiments/``)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"usage: python -m {module}")
