@@ -17,7 +17,7 @@ from envs.geometry import Travel, distances, pair_costs, travel_step
 from envs.layout import ObsLayout
 from envs.rendering import RenderSnapshot, render_ansi, render_rgb
 from envs.tables import EntityTable, TaskTable, clone
-from envs.validation import EPS, check_action, check_config
+from envs.validation import EPS, check_action, check_bids, check_config
 
 
 class TaskAllocEnv(gym.Env):
@@ -162,18 +162,11 @@ class TaskAllocEnv(gym.Env):
         self.action_space = spaces.MultiDiscrete(np.full(N, M + 1, dtype=np.int64))
 
         # Static padded entity arrays (never mutated; shared by deep copies).
-        self._cost0 = np.zeros(N)
-        self._cost0[:n] = entities.cost
-        self._supply0 = np.zeros((N, K))
-        self._supply0[:n] = entities.supply
-        self._pos0 = np.zeros((N, 2))  # integer cells stored as floats (no casts in the hot path)
-        if entities.positions is not None:
-            self._pos0[:n] = entities.positions
-        self._wire = np.zeros(N)
-        if entities.wire_cost is not None:
-            self._wire[:n] = entities.wire_cost
-        self._present0 = np.zeros(N, dtype=bool)
-        self._present0[:n] = True
+        self._cost0 = entities.padded(entities.cost, N)
+        self._supply0 = entities.padded(entities.supply, N)
+        self._pos0 = entities.padded(entities.positions, N, width=2)  # integer cells stored as floats (no casts when moving)
+        self._wire = entities.padded(entities.wire_cost, N)
+        self._present0 = entities.padded(np.ones(n, dtype=bool), N)
         self._task_rows = tasks.rows * self.reward_scale
         self._eye = np.vstack([np.eye(M), np.zeros((1, M))])  # row M (= row -1) is "no task"
         self._entity_index = np.arange(N)
@@ -221,11 +214,7 @@ class TaskAllocEnv(gym.Env):
         """
         if not self.bidding:
             raise RuntimeError("set_bids() needs an environment built with bidding=True")
-        b = np.asarray(bids, dtype=np.float64).reshape(-1)
-        if b.shape[0] not in (self.n_entities, self.max_entities):
-            raise ValueError(f"bids must have shape ({self.n_entities},) or ({self.max_entities},), got {np.shape(bids)}")
-        if not np.all(np.isfinite(b)) or b.min(initial=0.0) < 0 or b.max(initial=0.0) > self.bid_max + EPS:
-            raise ValueError(f"bids must be finite and lie in [0, bid_max={self.bid_max}]")
+        b = check_bids(bids, self.n_entities, self.max_entities, self.bid_max)
         self._bid[:] = 0.0
         self._bid[: b.shape[0]] = b
         self._geom_dirty = True

@@ -86,6 +86,16 @@ class EntityTable:
     def __len__(self) -> int:
         return len(self.cost)
 
+    @staticmethod
+    def padded(column: np.ndarray | None, n_rows: int, width: int | None = None) -> np.ndarray:
+        """``column`` (one value or row per entity) padded with zeros to ``n_rows`` rows; all zeros when it is None
+        (then ``width`` values per row, or one)."""
+        if column is None:
+            return np.zeros((n_rows, width) if width else n_rows)
+        out = np.zeros((n_rows, *column.shape[1:]), dtype=np.float64 if column.dtype != bool else bool)
+        out[: len(column)] = column
+        return out
+
 
 def clone(obj: Any, memo: dict[int, Any], shared: frozenset[str]) -> Any:
     """A deep copy of ``obj`` that shares the attributes named in ``shared``, copies arrays with ``ndarray.copy`` and

@@ -79,3 +79,13 @@ def check_action(action: Any, n_entities: int, n_tasks: int) -> np.ndarray:
     if lo < 0 or hi > M:
         raise ValueError(f"action values must lie in [0, {M}] (M = {M} means 'unassigned'), got [{lo}, {hi}]")
     return a.astype(np.int64, copy=False)
+
+
+def check_bids(bids: Any, n_entities: int, max_entities: int, bid_max: float) -> np.ndarray:
+    """The bids as a float array of ``n_entities`` or ``max_entities`` values in [0, ``bid_max``], or ``ValueError``."""
+    b = np.asarray(bids, dtype=np.float64).reshape(-1)
+    if b.shape[0] not in (n_entities, max_entities):
+        raise ValueError(f"bids must have shape ({n_entities},) or ({max_entities},), got {np.shape(bids)}")
+    if not np.all(np.isfinite(b)) or b.min(initial=0.0) < 0 or b.max(initial=0.0) > bid_max + EPS:
+        raise ValueError(f"bids must be finite and lie in [0, bid_max={bid_max}]")
+    return b
