@@ -152,3 +152,30 @@ def test_entry_points_answer_help(module):
     out = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith(f"usage: python -m {module}")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"batch_size": 0}, "batch_size must be a positive integer"),
+        ({"target_update_interval": 0}, "target_update_interval must be a positive integer"),
+        ({"select_batch_size": -1}, "select_batch_size"),
+        ({"ent_coef": "autox"}, "ent_coef must be 'auto'"),
+        ({"ent_coef": "auto_x"}, "ent_coef must be 'auto'"),
+        ({"ent_coef": -1.0}, "ent_coef must be"),
+        ({"select_ent_coef": float("nan")}, "select_ent_coef must be"),
+        ({"policy_kwargs": {"hidden_dim": 0}}, "hidden_dim must be a positive integer"),
+        ({"policy_kwargs": {"hidden_dim": -4}}, "hidden_dim must be a positive integer"),
+        ({"policy_kwargs": {"n_critics": 0}}, "n_critics must be a positive integer"),
+    ],
+)
+def test_bad_hyperparameters_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **kwargs)
+
+
+@pytest.mark.parametrize("steps", [-5, 2.5])
+def test_bad_budget_is_named(steps):
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs={"hidden_dim": 16})
+    with pytest.raises(ValueError, match="total_timesteps must be a non-negative integer"):
+        model.learn(steps)

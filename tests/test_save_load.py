@@ -132,3 +132,84 @@ def test_state_without_the_priors_is_refused():
     state = {k: v for k, v in model.policy.state_dict().items() if "_prior." not in k}
     with pytest.raises(RuntimeError, match=r"Missing key.*actor_prior"):
         model.policy.load_state_dict(state)
+
+
+def test_failed_save_keeps_the_previous_model(tmp_path, monkeypatch):
+    """A save that fails midway (here: the disk fills while the zip is written) leaves the previous model whole."""
+    import zipfile
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, policy_kwargs={"hidden_dim": 16})
+    model.save(tmp_path / "model")
+    before = (tmp_path / "model.zip").read_bytes()
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(zipfile.ZipFile, "writestr", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        model.save(tmp_path / "model")
+    monkeypatch.undo()
+    assert (tmp_path / "model.zip").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.zip"]  # no temporary file left behind
+    TwoStageSAC.load(tmp_path / "model")
+
+
+def test_failed_replay_buffer_save_keeps_the_previous_buffer(tmp_path, monkeypatch):
+    import pickle
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=5, seed=0, policy_kwargs=SMALL)
+    model.learn(5)
+    model.save_replay_buffer(tmp_path / "buffer")
+    before = (tmp_path / "buffer.pkl").read_bytes()
+    monkeypatch.setattr(pickle, "dump", lambda *a, **k: (_ for _ in ()).throw(OSError(27, "File too large")))
+    with pytest.raises(OSError, match="File too large"):
+        model.save_replay_buffer(tmp_path / "buffer")
+    monkeypatch.undo()
+    assert (tmp_path / "buffer.pkl").read_bytes() == before
+
+
+@pytest.mark.parametrize("content", ["truncated", "no_policy"])
+def test_broken_save_is_named(tmp_path, content):
+    """A truncated zip, or one without ``policy.pth``, gets an error naming the file and what is wrong."""
+    import zipfile
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, policy_kwargs={"hidden_dim": 16})
+    model.save(tmp_path / "model")
+    path = tmp_path / "model.zip"
+    if content == "truncated":
+        path.write_bytes(path.read_bytes()[:200])
+        match = "not a zip file"
+    else:
+        with zipfile.ZipFile(path) as z:
+            members = {n: z.read(n) for n in z.namelist() if n != "policy.pth"}
+        with zipfile.ZipFile(path, "w") as z:
+            for name, data in members.items():
+                z.writestr(name, data)
+        match = "no policy.pth"
+    with pytest.raises(ValueError, match=match):
+        TwoStageSAC.load(path)
+
+
+def test_replay_buffer_of_another_size_is_refused(tmp_path):
+    """A buffer filled on a 100-entity env cannot be trained on by a 50-entity model: refused when loaded."""
+    big = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=3, seed=0, policy_kwargs=SMALL)
+    big.learn(3)
+    big.save_replay_buffer(tmp_path / "buffer")
+    small = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-EntityShift-v0", seed=0, policy_kwargs=SMALL)
+    buffer = small.replay_buffer
+    with pytest.raises(ValueError, match="filled on another env"):
+        small.load_replay_buffer(tmp_path / "buffer")
+    assert small.replay_buffer is buffer
+
+
+def test_bad_observations_to_predict_are_named():
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/EPT-v0", seed=0, policy_kwargs=SMALL)
+    obs = observations("TaskAlloc/EPT-v0", 1)[0]
+    nan = {**obs, "entity_features": obs["entity_features"].copy()}
+    nan["entity_features"][0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"observation\['entity_features'\] contains NaN"):
+        model.predict(nan)
+    with pytest.raises(ValueError, match=r"unexpected \['foo'\]"):
+        model.predict({**obs, "foo": np.zeros(3)})
+    with pytest.raises(ValueError, match=r"missing \['pair_cost'\]"):
+        model.predict({k: v for k, v in obs.items() if k != "pair_cost"})

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import torch as th
 
@@ -16,3 +20,36 @@ def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[t
         raise ValueError(f"{len(params)} parameters but {len(target_params)} target parameters")
     th._foreach_mul_(target_params, 1 - tau)
     th._foreach_add_(target_params, params, alpha=tau)
+
+
+def with_default_suffix(path: str | os.PathLike[str], suffix: str) -> Path:
+    """``path`` with ``suffix`` (e.g. ``".zip"``) added when it has none, as SB3 names the files it saves."""
+    path = Path(path)
+    return path if path.suffix else path.with_suffix(suffix)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary file in ``path``'s folder that replaces ``path`` (``os.replace``, atomic on POSIX) only when the
+    block ends without an error: an interrupted or failed write never leaves a truncated file in place of a good one.
+
+    :param path: the file to write (its folder is created)
+    :return: the temporary path to write to (same suffix as ``path``)
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}")
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` to ``path`` atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)

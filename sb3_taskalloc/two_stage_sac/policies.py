@@ -7,6 +7,7 @@ import math
 from collections.abc import Callable
 from typing import Any, Literal
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
@@ -281,6 +282,21 @@ class TAMPolicy(BasePolicy):
         self._mode = mode
 
     # ------------------------------------------------------------------ acting
+
+    def obs_to_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[PyTorchObs, bool]:
+        """SB3's conversion, after checking what a user hands to ``predict``: a dict with this space's keys and finite
+        values (NaN would give a normal-looking action)."""
+        if not isinstance(observation, dict):
+            raise ValueError(f"TAMPolicy expects a TaskAlloc observation dict, got {type(observation).__name__}")
+        expected = set(self.observation_space.spaces)  # type: ignore[attr-defined]
+        if set(observation) != expected:
+            missing, extra = sorted(expected - set(observation)), sorted(set(observation) - expected)
+            raise ValueError(f"the observation's keys do not match the model's space: missing {missing}, unexpected {extra}")
+        for key in OBS_KEYS:
+            value = np.asarray(observation[key])
+            if value.dtype.kind == "f" and not np.isfinite(value).all():
+                raise ValueError(f"observation[{key!r}] contains NaN or infinite values")
+        return super().obs_to_tensor(observation)
 
     def parse(self, obs: PyTorchObs) -> ObsView:
         """The typed, normalised view of a batch of observations."""

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import io
+import math
+import pathlib
 from collections import defaultdict
 from typing import Any, ClassVar, TypeVar
 
@@ -18,6 +21,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
+from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
@@ -28,7 +32,7 @@ SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 DEFAULT_TOTAL_TIMESTEPS = 20_000
 
 
-class TwoStageSAC(OffPolicyAlgorithm):
+class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     """Two-stage discrete soft actor-critic (paper: "A Two-stage Reinforcement Learning-based Approach for
     Multi-entity Task Allocation"), for the ``TaskAlloc`` environments.
 
@@ -191,15 +195,19 @@ class TwoStageSAC(OffPolicyAlgorithm):
             supported_action_spaces=(spaces.MultiDiscrete,),
             support_multi_env=True,
         )
+        positive = {"batch_size": batch_size, "target_update_interval": target_update_interval}
+        for name, count in {**positive, "select_batch_size": select_batch_size}.items():
+            if not (isinstance(count, int) and count >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {count!r}")
         self.ent_coef = ent_coef
         self.select_ent_coef = select_ent_coef
         self.target_entropy_ratio = target_entropy_ratio
         if actor_warmup < 0:
             raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
         self.actor_warmup = actor_warmup
-        for name, value in (("prior_coef", prior_coef), ("select_prior_coef", select_prior_coef)):
-            if not value >= 0.0:
-                raise ValueError(f"{name} must be >= 0, got {value!r}")
+        for name, coef in (("prior_coef", prior_coef), ("select_prior_coef", select_prior_coef)):
+            if not coef >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {coef!r}")
         self.prior_coef = float(prior_coef)
         self.select_prior_coef = float(select_prior_coef)
         self.target_update_interval = target_update_interval
@@ -227,15 +235,21 @@ class TwoStageSAC(OffPolicyAlgorithm):
     def _entropy_coefficient(
         self, spec: str | float, name: str
     ) -> tuple[th.Tensor | None, th.optim.Optimizer | None, th.Tensor | None]:
-        """(log α parameter, its optimizer, None) for ``"auto[_init]"``, or (None, None, α) for a float."""
+        """(log α parameter, its optimizer, None) for ``"auto[_init]"``, or (None, None, α) for a float ≥ 0."""
         if isinstance(spec, str):
-            if not spec.startswith("auto"):
-                raise ValueError(f"{name} must be 'auto', 'auto_<init>' or a float, got {spec!r}")
-            init = float(spec.split("_")[1]) if "_" in spec else 0.1
+            head, _, init_text = spec.partition("_")
+            try:
+                init = float(init_text) if init_text else 0.1
+            except ValueError:
+                init = math.nan
+            if head != "auto" or not math.isfinite(init):
+                raise ValueError(f"{name} must be 'auto', 'auto_<initial value>' or a float, got {spec!r}")
             if init <= 0:
                 raise ValueError(f"the initial value of {name} must be > 0, got {init}")
             log_alpha = th.log(th.ones(1, device=self.device) * init).requires_grad_(True)
             return log_alpha, th.optim.Adam([log_alpha], lr=self.lr_schedule(1)), None
+        if not (isinstance(spec, int | float) and math.isfinite(spec) and spec >= 0):
+            raise ValueError(f"{name} must be 'auto', 'auto_<initial value>' or a float >= 0, got {spec!r}")
         return None, None, th.tensor(float(spec), device=self.device)
 
     def _create_aliases(self) -> None:
@@ -382,6 +396,8 @@ class TwoStageSAC(OffPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfTwoStageSAC:
         """Train for ``total_timesteps`` env steps (default :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000)."""
+        if not (isinstance(total_timesteps, int | np.integer) and total_timesteps >= 0):
+            raise ValueError(f"total_timesteps must be a non-negative integer, got {total_timesteps!r}")
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
@@ -427,12 +443,28 @@ class TwoStageSAC(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfTwoStageSAC:
         """Load a model; ``env`` may have other entity/task counts when the policy is size-agnostic (see :meth:`set_env`)."""
+        if isinstance(path, str | pathlib.Path):
+            check_saved_model(path, ("data", "policy.pth"))
         model = super().load(
             path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
         )
         if env is not None:
             model.set_env(env, force_reset)
         return model
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """SB3's load, refusing a buffer whose spaces differ from this model's (another entity or task count): its
+        transitions could not be trained on."""
+        current = self.replay_buffer
+        super().load_replay_buffer(path, truncate_last_traj)
+        loaded = self.replay_buffer
+        if not isinstance(loaded, TwoStageReplayBuffer) or loaded.observation_space != self.observation_space:
+            self.replay_buffer = current
+            got = loaded.observation_space if isinstance(loaded, TwoStageReplayBuffer) else type(loaded).__name__
+            raise ValueError(
+                f"the replay buffer in {path} was filled on another env: its observation space {got} differs from this "
+                f"model's {self.observation_space}"
+            )
 
     def _excluded_save_params(self) -> list[str]:
         return [
