@@ -11,7 +11,8 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 
-from sb3_taskalloc.experiments.table import ENVS, METHODS, ROWS, TableRun
+from sb3_taskalloc.experiments.budgets import ENVS, METHODS, ROWS
+from sb3_taskalloc.experiments.table import TableRun
 
 CELL = re.compile(r"^(-?\d+(\.\d+)?( ± \d+(\.\d+)?)?|n/a \((size|static|scratch)\))$")  # one seed: no spread
 
@@ -66,7 +67,7 @@ def test_smoke_table_is_well_formed(smoke_tables, env):
         assert scratch["W/o TAM"]["std"] == "scratch"
         text = (smoke_tables / env / "table.md").read_text()
         assert re.search(r"Ours zero-shot / from scratch on the entity shift: (-?\d+\.\d+|n/a)", text), text
-        assert len(list((smoke_tables / env / "models").glob("ours_s0_from_scratch*entity.zip"))) == 1
+        assert len(list((smoke_tables / env / "models").glob("ours_s0_from_scratch*entity_*.zip"))) == 1
         assert (smoke_tables / env / "curves.png").stat().st_size > 0
     goal = r"Ours / best planner \((GA|PSO|SOS)\) on the training env: (-?\d+\.\d+|n/a)"
     assert re.search(goal, (smoke_tables / env / "table.md").read_text())
@@ -84,6 +85,42 @@ def test_resume_computes_only_missing_cells(smoke_tables):
     run_smoke(("EPT", str(smoke_tables)))
     after = cells.read_text().splitlines()
     assert after[: len(kept)] == kept and len(after) == len(kept) + 1 and after[-1].startswith("Ours,few-shot (task),0,")
+
+
+def test_resume_after_a_row_cut_mid_line(smoke_tables):
+    """A kill while a cell is appended leaves a partial last line: the resume drops it and recomputes that cell."""
+    cells = smoke_tables / "EPT" / "cells.csv"
+    lines = cells.read_text().splitlines()
+    cells.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][: len(lines[-1]) // 2])  # no trailing newline
+    run_smoke(("EPT", str(smoke_tables)))
+    after = cells.read_text().splitlines()
+    assert after[:-1] == lines[:-1] and after[-1].split(",")[:3] == lines[-1].split(",")[:3]
+
+
+def test_budgets_are_never_mixed(tmp_path):
+    """Cells of one budget neither appear in nor stand in for another budget's table, and models are filed apart."""
+    smoke = TableRun("EPT", 1, "smoke", tmp_path, methods=["Greedy"], progress=False)
+    smoke._record("Greedy", "train", 0, "10.3", 0.0)
+    local = TableRun("EPT", 1, "local", tmp_path, methods=["Greedy"], progress=False)
+    assert smoke.done() == {("Greedy", "train", 0): "10.3"}
+    assert local.done() == {}  # computed again under the local budget, not read from the smoke row
+    assert local.cell_key("Greedy", "train") != smoke.cell_key("Greedy", "train")
+    assert local._model_path("Ours", 0) != smoke._model_path("Ours", 0)
+    local._record("Greedy", "train", 0, "132.1", 0.0)
+    assert local.done() == {("Greedy", "train", 0): "132.1"} and smoke.done() == {("Greedy", "train", 0): "10.3"}
+    assert "132.1" in local.write_table().read_text() and "10.3" not in local.write_table().read_text()
+
+
+def test_cells_written_without_a_config_are_kept_but_not_used(tmp_path):
+    """A cells file from before configurations were recorded keeps its rows (nothing a user saved is lost) and gains
+    the column; its cells, of unknown settings, are computed again."""
+    run = TableRun("EPT", 1, "smoke", tmp_path, methods=["Greedy"], progress=False)
+    run.folder.mkdir(parents=True)
+    run.cells_path.write_text("method,row,seed,value,seconds,budget\nGreedy,train,0,5.0,0.1,smoke\n")
+    assert run.done() == {}
+    run._record("Greedy", "train", 0, "7.0", 0.0)
+    rows = list(csv.DictReader(run.cells_path.open()))
+    assert [(r["value"], r["config"]) for r in rows] == [("5.0", ""), ("7.0", run.cell_key("Greedy", "train"))]
 
 
 def test_table_rejects_bad_arguments():

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> None:
-    from sb3_taskalloc.experiments.table import BUDGETS, ENVS, METHODS
+    from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS
 
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.experiments", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)

@@ -274,7 +274,7 @@ def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:
         RecedingHorizonPlanner,
         SymbioticOrganismsSearch,
     )
-    from sb3_taskalloc.experiments.table import PLANNER_BUDGET
+    from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET
 
     rows: list[dict[str, Any]] = []
     steps = 10 if args.quick else 30

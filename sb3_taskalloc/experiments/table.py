@@ -13,149 +13,37 @@ seeds of each seed's mean deterministic return over ``eval_episodes`` seeded eva
 Below the table, the goals of the comparison are computed from its means: Ours against the best planner, Greedy and
 the W/o Pre rows on the training env, and zero-shot against from scratch on each preset.
 
-Every finished cell is appended to ``cells.csv`` and every trained model saved under ``models/``, so an interrupted
-run resumes where it stopped (``--fresh`` starts over).
+Every finished cell is appended to ``cells.csv`` and every trained model saved under ``models/``, both filed under a
+digest of the configuration that produced them (budget, env settings, method, hyperparameters): an interrupted run
+resumes where it stopped, and a run with other settings never shows or reuses them (``--fresh`` starts over).
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 
-#: Planner settings of the ``local`` and ``smoke`` budgets (rollouts per re-plan are what makes them slow).
-PLANNER_BUDGET: dict[str, Any] = {"population": 20, "budget": 100}
-
-ROWS = [
-    "train",
-    "zero-shot (entity)",
-    "few-shot (entity)",
-    "from scratch (entity)",
-    "zero-shot (task)",
-    "few-shot (task)",
-    "from scratch (task)",
-]
-#: Columns trained from scratch on the presets (the reference of the zero-shot goal; the others would double the cost).
-SCRATCH_METHODS = ("Ours",)
-ENVS = ["Almighty", "EPT", "RBF", "MT"]
-EPISODE_STEPS = {"Almighty": 1, "EPT": 100, "RBF": 100, "MT": 150}
-
-
-@dataclass(frozen=True)
-class Method:
-    """One column: ``kind`` is ``"sac"`` (TwoStageSAC with ``kwargs`` as policy kwargs), ``"ppo"`` (MaskablePPO),
-    ``"planner"`` (GA/PSO/SOS class name) or ``"static"`` (Greedy, MILP)."""
-
-    kind: str
-    kwargs: dict[str, Any] = field(default_factory=dict)
-    target: str = ""
-
-    @property
-    def learns(self) -> bool:
-        return self.kind in ("sac", "ppo")
-
-
-METHODS: dict[str, Method] = {
-    "Ours": Method("sac"),
-    "GA": Method("planner", target="GeneticAlgorithm"),
-    "PSO": Method("planner", target="ParticleSwarm"),
-    "SOS": Method("planner", target="SymbioticOrganismsSearch"),
-    "W/o Pre (sequence)": Method("sac", {"preassign": False, "task_order": "sequential"}),
-    "W/o Pre (random)": Method("sac", {"preassign": False, "task_order": "random"}),
-    "W/o AMIX": Method("sac", {"mixer": "global"}),
-    "W/o TAM": Method("sac", {"encoder": "mlp"}),
-    "Greedy": Method("static", target="GreedyAllocator"),
-    "MILP": Method("static", target="MILPAllocator"),
-    "MaskablePPO": Method("ppo"),
-}
-
-
-@dataclass(frozen=True)
-class Budget:
-    """Training and evaluation budget of a table run.
-
-    :param train_episodes: training episodes of the RL methods (or per env name)
-    :param few_shot_episodes: fine-tuning episodes of the few-shot rows (paper: 200)
-    :param eval_episodes: evaluation episodes per seed
-    :param planner: GA/PSO/SOS keywords (None: the paper's settings)
-    :param sac: extra TwoStageSAC keywords
-    :param ppo: extra MaskablePPO keywords
-    :param milp: MILPAllocator keywords
-    :param max_episode_steps: shorter episodes than the envs' own (training and evaluation), for smoke runs
-    """
-
-    train_episodes: int | dict[str, int]
-    few_shot_episodes: int
-    eval_episodes: int
-    planner: dict[str, Any] | None
-    sac: dict[str, Any] = field(default_factory=dict)
-    ppo: dict[str, Any] = field(default_factory=dict)
-    milp: dict[str, Any] = field(default_factory=dict)
-    max_episode_steps: int | None = None
-
-    def steps(self, env: str, episodes: int | dict[str, int]) -> int:
-        n = episodes[env] if isinstance(episodes, dict) else episodes
-        return n * min(self.max_episode_steps or EPISODE_STEPS[env], EPISODE_STEPS[env])
-
-    def make(self, env_id: str) -> gym.Env:
-        """The env of a run (episodes cut at ``max_episode_steps`` when set)."""
-        return gym.make(env_id, max_episode_steps=self.max_episode_steps) if self.max_episode_steps else gym.make(env_id)
-
-
-BUDGETS: dict[str, Budget] = {
-    # The paper: 1000 training episodes, 200 fine-tuning episodes, 10 evaluation episodes, planners at full settings.
-    "paper": Budget(1000, 200, 10, None),
-    # A budget for one CPU thread: TwoStageSAC trains at 8-30 env steps/s there, so about an hour per env.
-    "local": Budget({"Almighty": 1200, "EPT": 20, "RBF": 20, "MT": 14}, 5, 3, PLANNER_BUDGET, milp={"time_limit": 2.0}),
-    # CI: checks the pipeline end to end in seconds; the figures mean nothing.
-    "smoke": Budget(
-        2,
-        1,
-        1,
-        {"population": 4, "budget": 8, "horizon": 3, "tail": 2},
-        sac={"learning_starts": 10, "batch_size": 8, "select_batch_size": 4, "policy_kwargs": {"hidden_dim": 16}},
-        ppo={"n_steps": 16, "batch_size": 8, "n_epochs": 1},
-        milp={"time_limit": 0.5},
-        max_episode_steps=8,
-    ),
-}
-
-FOOTNOTES = {
-    "size": "n/a (size): the method's networks are built for the training env's entity/task counts (encoder='mlp', "
-    "mixer='global', MaskablePPO's flat policy); the preset has other counts.",
-    "static": "n/a (no learning): the baseline has nothing to fine-tune or train; its zero-shot row is its run on the preset.",
-    "scratch": "n/a (scratch): only Ours is trained from scratch on the presets, as the reference of its zero-shot goal.",
-    "preset": "n/a (no preset): Almighty has no entity or task shift presets.",
-}
-
-
-def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
-    """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
-    ``policy`` and ``n_timesteps`` left out); ``{}`` when the file or the block is missing."""
-    import yaml
-
-    path = Path(path) if path else Path(__file__).resolve().parents[2] / "zoo_configs" / "two_stage_sac.yml"
-    if not path.exists():
-        return {}
-    block = dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
-    block.pop("policy", None)
-    block.pop("n_timesteps", None)
-    return block
-
-
-def row_env(env: str, row: str) -> str | None:
-    """Env id of a row (None when the env has no such preset)."""
-    if row == "train":
-        return f"TaskAlloc/{env}-v0"
-    if env == "Almighty":
-        return None
-    return f"TaskAlloc/{env}-{'EntityShift' if 'entity' in row else 'TaskShift'}-v0"
+from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
+from sb3_taskalloc.experiments.budgets import (
+    BUDGETS,
+    ENVS,
+    FOOTNOTES,
+    METHODS,
+    ROWS,
+    SCRATCH_METHODS,
+    Budget,
+    Method,
+    config_key,
+    env_settings,
+    row_env,
+    zoo_hyperparameters,
+)
 
 
 def _slug(name: str) -> str:
@@ -218,28 +106,84 @@ class TableRun:
         self.folder = Path(out) / env
         self.progress = progress
         self.cells_path = self.folder / "cells.csv"
+        self._zoo: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------ records
 
-    def done(self) -> dict[tuple[str, str, int], str]:
-        """Finished cells (method, row, seed) → value ("n/a:<reason>" or a number) from ``cells.csv``."""
+    def _train_settings(self, name: str, row: str = "train") -> list[Any]:
+        """Everything that changes the model of ``name`` trained on the env of ``row``."""
+        method, budget = METHODS[name], self.budget
+        train_id = row_env(self.env, "train")
+        assert train_id is not None
+        learner = budget.sac if method.kind == "sac" else budget.ppo if method.kind == "ppo" else None
+        zoo = self._zoo.setdefault(train_id, zoo_hyperparameters(train_id)) if method.kind == "sac" else None
+        steps = budget.steps(self.env, budget.train_episodes)
+        return [method, env_settings(row_env(self.env, row)), steps, learner, budget.max_episode_steps, zoo]
+
+    def cell_key(self, name: str, row: str) -> str:
+        """The configuration a cell of ``name`` in ``row`` was computed under (see :func:`.budgets.config_key`)."""
+        return config_key(self._train_settings(name), env_settings(row_env(self.env, row)), self.budget)
+
+    def _read_cells(self) -> list[dict[str, str]]:
+        """The rows of ``cells.csv``. A last line cut mid-row (a kill while appending) is dropped from the file first."""
         if not self.cells_path.exists():
-            return {}
-        with self.cells_path.open() as f:
-            return {(r["method"], r["row"], int(r["seed"])): r["value"] for r in csv.DictReader(f)}
+            return []
+        text = self.cells_path.read_text()
+        if text and not text.endswith("\n"):
+            text = text[: text.rfind("\n") + 1]
+            with atomic_path(self.cells_path) as tmp:
+                tmp.write_text(text)
+        rows = list(csv.DictReader(text.splitlines()))
+        return [r for r in rows if None not in r.values() and None not in r]
+
+    def done(self) -> dict[tuple[str, str, int], str]:
+        """Finished cells (method, row, seed) → value ("n/a:<reason>" or a number) from ``cells.csv``, computed under
+        this run's configuration (cells of other budgets, env settings or hyperparameters are left out)."""
+        keys: dict[tuple[str, str], str] = {}
+        cells = {}
+        for r in self._read_cells():
+            if r["method"] not in METHODS or r["row"] not in ROWS:
+                continue
+            key = keys.setdefault((r["method"], r["row"]), self.cell_key(r["method"], r["row"]))
+            if r.get("config") == key:
+                cells[(r["method"], r["row"], int(r["seed"]))] = r["value"]
+        return cells
 
     def _record(self, method: str, row: str, seed: int, value: str, seconds: float) -> None:
+        """Append one cell (one write of one line), adding the ``config`` column to a file written without it."""
+        header = ["method", "row", "seed", "value", "seconds", "budget", "config"]
+        self.cells_path.parent.mkdir(parents=True, exist_ok=True)
+        rows = self._read_cells()
+        if rows and "config" not in rows[0]:
+            with atomic_path(self.cells_path) as tmp, tmp.open("w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=header)
+                writer.writeheader()
+                writer.writerows({**r, "config": ""} for r in rows)
+        line = [method, row, seed, value, f"{seconds:.1f}", self.budget_name, self.cell_key(method, row)]
         new = not self.cells_path.exists()
+        buffer = io.StringIO()
+        out = csv.writer(buffer)
+        if new:
+            out.writerow(header)
+        out.writerow(line)
         with self.cells_path.open("a", newline="") as f:
-            writer = csv.writer(f)
-            if new:
-                writer.writerow(["method", "row", "seed", "value", "seconds", "budget"])
-            writer.writerow([method, row, seed, value, f"{seconds:.1f}", self.budget_name])
+            f.write(buffer.getvalue())
 
     # ------------------------------------------------------------ models
 
     def _model_path(self, method: str, seed: int, row: str = "train") -> Path:
-        return self.folder / "models" / f"{_slug(method)}_s{seed}_{_slug(row)}.zip"
+        """Where a model is saved: named by method, seed, row and the digest of its training configuration."""
+        if row.startswith("few-shot"):
+            few = self.budget.steps(self.env, self.budget.few_shot_episodes)
+            key = config_key(self._train_settings(method), env_settings(row_env(self.env, row)), few)
+        else:
+            key = config_key(self._train_settings(method, row))
+        return self.folder / "models" / f"{_slug(method)}_s{seed}_{_slug(row)}_{key}.zip"
+
+    @staticmethod
+    def _save(model: Any, path: Path) -> None:
+        with atomic_path(path) as tmp:
+            model.save(tmp)
 
     def _new_model(self, method: Method, env_id: str, seed: int, log: Path) -> Any:
         from stable_baselines3.common.monitor import Monitor
@@ -283,8 +227,7 @@ class TableRun:
         suffix = "" if row == "train" else f"_{_slug(row)}"
         model = self._new_model(method, env_id, seed, self.folder / "logs" / f"{_slug(name)}_s{seed}{suffix}.monitor.csv")
         model.learn(self.budget.steps(self.env, self.budget.train_episodes))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        model.save(path)
+        self._save(model, path)
         return model
 
     # ------------------------------------------------------------ cells
@@ -329,7 +272,7 @@ class TableRun:
         else:
             tuned = self._load(method, self._model_path(name, seed), env_id, log)
             tuned.learn(self.budget.steps(self.env, self.budget.few_shot_episodes), reset_num_timesteps=False)
-            tuned.save(path)
+            self._save(tuned, path)
         return f"{evaluate(tuned, env_id, budget, seed, method):.6g}"
 
     def run(self) -> Path:
@@ -353,7 +296,7 @@ class TableRun:
         done = self.done()
         notes: set[str] = set()
         summary: dict[tuple[str, str], str] = {}
-        with (self.folder / "table.csv").open("w", newline="") as f:
+        with atomic_path(self.folder / "table.csv") as tmp, tmp.open("w", newline="") as f:
             writer = csv.writer(f)
             writer.writerow(["row", "method", "mean", "std", "n"])
             for row in ROWS:
@@ -388,8 +331,7 @@ class TableRun:
         goals = self.goals()
         if goals:
             lines += ["", "Goals (ratios of the means above; higher is better):", "", *[f"- {g}" for g in goals]]
-        path = self.folder / "table.md"
-        path.write_text("\n".join(lines) + "\n")
+        path = atomic_write_text(self.folder / "table.md", "\n".join(lines) + "\n")
         return path
 
     def means(self) -> dict[tuple[str, str], float]:

@@ -1,0 +1,154 @@
+"""The settings of the paper's table: its rows, its columns (methods) and its budgets."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+
+#: Planner settings of the ``local`` and ``smoke`` budgets (rollouts per re-plan are what makes them slow).
+PLANNER_BUDGET: dict[str, Any] = {"population": 20, "budget": 100}
+
+ROWS = [
+    "train",
+    "zero-shot (entity)",
+    "few-shot (entity)",
+    "from scratch (entity)",
+    "zero-shot (task)",
+    "few-shot (task)",
+    "from scratch (task)",
+]
+#: Columns trained from scratch on the presets (the reference of the zero-shot goal; the others would double the cost).
+SCRATCH_METHODS = ("Ours",)
+ENVS = ["Almighty", "EPT", "RBF", "MT"]
+EPISODE_STEPS = {"Almighty": 1, "EPT": 100, "RBF": 100, "MT": 150}
+
+
+@dataclass(frozen=True)
+class Method:
+    """One column: ``kind`` is ``"sac"`` (TwoStageSAC with ``kwargs`` as policy kwargs), ``"ppo"`` (MaskablePPO),
+    ``"planner"`` (GA/PSO/SOS class name) or ``"static"`` (Greedy, MILP)."""
+
+    kind: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    target: str = ""
+
+    @property
+    def learns(self) -> bool:
+        return self.kind in ("sac", "ppo")
+
+
+METHODS: dict[str, Method] = {
+    "Ours": Method("sac"),
+    "GA": Method("planner", target="GeneticAlgorithm"),
+    "PSO": Method("planner", target="ParticleSwarm"),
+    "SOS": Method("planner", target="SymbioticOrganismsSearch"),
+    "W/o Pre (sequence)": Method("sac", {"preassign": False, "task_order": "sequential"}),
+    "W/o Pre (random)": Method("sac", {"preassign": False, "task_order": "random"}),
+    "W/o AMIX": Method("sac", {"mixer": "global"}),
+    "W/o TAM": Method("sac", {"encoder": "mlp"}),
+    "Greedy": Method("static", target="GreedyAllocator"),
+    "MILP": Method("static", target="MILPAllocator"),
+    "MaskablePPO": Method("ppo"),
+}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Training and evaluation budget of a table run.
+
+    :param train_episodes: training episodes of the RL methods (or per env name)
+    :param few_shot_episodes: fine-tuning episodes of the few-shot rows (paper: 200)
+    :param eval_episodes: evaluation episodes per seed
+    :param planner: GA/PSO/SOS keywords (None: the paper's settings)
+    :param sac: extra TwoStageSAC keywords
+    :param ppo: extra MaskablePPO keywords
+    :param milp: MILPAllocator keywords
+    :param max_episode_steps: shorter episodes than the envs' own (training and evaluation), for smoke runs
+    """
+
+    train_episodes: int | dict[str, int]
+    few_shot_episodes: int
+    eval_episodes: int
+    planner: dict[str, Any] | None
+    sac: dict[str, Any] = field(default_factory=dict)
+    ppo: dict[str, Any] = field(default_factory=dict)
+    milp: dict[str, Any] = field(default_factory=dict)
+    max_episode_steps: int | None = None
+
+    def steps(self, env: str, episodes: int | dict[str, int]) -> int:
+        n = episodes[env] if isinstance(episodes, dict) else episodes
+        return n * min(self.max_episode_steps or EPISODE_STEPS[env], EPISODE_STEPS[env])
+
+    def make(self, env_id: str) -> gym.Env:
+        """The env of a run (episodes cut at ``max_episode_steps`` when set)."""
+        return gym.make(env_id, max_episode_steps=self.max_episode_steps) if self.max_episode_steps else gym.make(env_id)
+
+
+BUDGETS: dict[str, Budget] = {
+    # The paper: 1000 training episodes, 200 fine-tuning episodes, 10 evaluation episodes, planners at full settings.
+    "paper": Budget(1000, 200, 10, None),
+    # A budget for one CPU thread: TwoStageSAC trains at 8-30 env steps/s there, so about an hour per env.
+    "local": Budget({"Almighty": 1200, "EPT": 20, "RBF": 20, "MT": 14}, 5, 3, PLANNER_BUDGET, milp={"time_limit": 2.0}),
+    # CI: checks the pipeline end to end in seconds; the figures mean nothing.
+    "smoke": Budget(
+        2,
+        1,
+        1,
+        {"population": 4, "budget": 8, "horizon": 3, "tail": 2},
+        sac={"learning_starts": 10, "batch_size": 8, "select_batch_size": 4, "policy_kwargs": {"hidden_dim": 16}},
+        ppo={"n_steps": 16, "batch_size": 8, "n_epochs": 1},
+        milp={"time_limit": 0.5},
+        max_episode_steps=8,
+    ),
+}
+
+FOOTNOTES = {
+    "size": "n/a (size): the method's networks are built for the training env's entity/task counts (encoder='mlp', "
+    "mixer='global', MaskablePPO's flat policy); the preset has other counts.",
+    "static": "n/a (no learning): the baseline has nothing to fine-tune or train; its zero-shot row is its run on the preset.",
+    "scratch": "n/a (scratch): only Ours is trained from scratch on the presets, as the reference of its zero-shot goal.",
+    "preset": "n/a (no preset): Almighty has no entity or task shift presets.",
+}
+
+
+def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
+    """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
+    ``policy`` and ``n_timesteps`` left out); ``{}`` when the file or the block is missing."""
+    import yaml
+
+    path = Path(path) if path else Path(__file__).resolve().parents[2] / "zoo_configs" / "two_stage_sac.yml"
+    if not path.exists():
+        return {}
+    block = dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
+    block.pop("policy", None)
+    block.pop("n_timesteps", None)
+    return block
+
+
+def row_env(env: str, row: str) -> str | None:
+    """Env id of a row (None when the env has no such preset)."""
+    if row == "train":
+        return f"TaskAlloc/{env}-v0"
+    if env == "Almighty":
+        return None
+    return f"TaskAlloc/{env}-{'EntityShift' if 'entity' in row else 'TaskShift'}-v0"
+
+
+def config_key(*parts: Any) -> str:
+    """A short digest of everything that changes a result (budget, method, env settings, hyperparameters): cells and
+    models are filed under it, so results of other settings are never mixed in."""
+    text = json.dumps([asdict(p) if hasattr(p, "__dataclass_fields__") else p for p in parts], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+def env_settings(env_id: str | None) -> dict[str, Any] | None:
+    """The registered keywords and episode length of ``env_id`` (part of a result's configuration)."""
+    if env_id is None:
+        return None
+    spec = gym.spec(env_id)
+    return {"id": env_id, "kwargs": spec.kwargs, "max_episode_steps": spec.max_episode_steps}
