@@ -74,7 +74,7 @@ def worker_args(tmp_path: Path, n_trials: int, n_timesteps: int = 40) -> list[st
     return [
         "--env", "TaskAlloc/Almighty-v0", "--n-trials", str(n_trials), "--n-timesteps", str(n_timesteps),
         "--n-evaluations", "2", "--eval-episodes", "1", "--n-startup-trials", "1", "--study-name", "s",
-        "--storage", str(tmp_path / "s.log"), "--out", str(tmp_path),
+        "--storage", str(tmp_path / "s.log"), "--heartbeat-interval", "1", "--heartbeat-grace", "3",
     ]  # fmt: skip
 
 
@@ -138,6 +138,7 @@ def test_killed_worker_loses_no_completed_trial(tmp_path):
     before = {t.number: t.value for t in load(tmp_path).get_trials(states=runner.FINISHED)}
     killed = [t for t in load(tmp_path).trials if t.state == TrialState.RUNNING]
     assert len(killed) == 1
+    time.sleep(4)  # past the heartbeat grace period: the killed worker's trial is stale
     out, _ = spawn(tmp_path, 4, n_timesteps=150).communicate(timeout=600)
     study = load(tmp_path)
     after = {t.number: t.value for t in study.get_trials(states=runner.FINISHED)}
@@ -197,3 +198,89 @@ def test_two_workers_share_a_postgresql_study(tmp_path, postgres_url):
     finished = study.get_trials(states=runner.FINISHED)
     assert len(finished) == 4 and len({tuple(sorted(t.params.items())) for t in finished}) == 4
     assert isinstance(runner.make_storage(postgres_url, "s"), optuna.storages.RDBStorage)
+
+
+def test_torn_journal_is_repaired_on_resume(tmp_path, capsys):
+    """A journal whose last record was cut mid-write (a crash while writing) is repaired before anything is appended:
+    every completed trial survives, the cut bytes are kept aside, and Optuna reads the file afterwards."""
+    runner.main(worker_args(tmp_path, 2))
+    journal = tmp_path / "s.log"
+    complete = {t.number: t.value for t in load(tmp_path).get_trials(states=(TrialState.COMPLETE,))}
+    size = journal.stat().st_size
+    with journal.open("r+b") as f:
+        f.truncate(size - 90)  # ``truncate -s -90``: the last record cut mid-line
+    time.sleep(4)  # past the grace period: a trial whose closing record was cut is stale, and is run again
+    runner.main(worker_args(tmp_path, 3))
+    study = load(tmp_path)  # readable
+    after = {t.number: t.value for t in study.get_trials(states=(TrialState.COMPLETE,))}
+    assert {n: after[n] for n in complete if n in after} == {n: complete[n] for n in complete if n in after}
+    assert len(complete) - len(set(complete) & set(after)) <= 1  # at most the record that was cut
+    assert runner.count(study, runner.FINISHED) == 3
+    torn = list(tmp_path.glob("s.log.torn-*"))
+    assert len(torn) == 1 and 0 < torn[0].stat().st_size < 90 + 1
+    assert "cut mid-write" in capsys.readouterr().out
+
+
+def test_damaged_or_foreign_journal_is_refused_untouched(tmp_path):
+    journal = tmp_path / "s.log"
+    journal.write_text('{"op_code": 0}\nnot json\n{"op_code": 1}\n')
+    with pytest.raises(SystemExit, match="line 2 is not a JSON record"):
+        runner.main(worker_args(tmp_path, 1))
+    assert journal.read_text() == '{"op_code": 0}\nnot json\n{"op_code": 1}\n'
+    import sqlite3
+
+    db = tmp_path / "s1.db"
+    sqlite3.connect(db).execute("create table t (x)").connection.commit()
+    args = [a if a != str(journal) else str(db) for a in worker_args(tmp_path, 1)]
+    with pytest.raises(SystemExit, match="sqlite:///"):
+        runner.main(args)
+
+
+def test_resuming_with_another_env_is_refused(tmp_path):
+    runner.main(worker_args(tmp_path, 1))
+    study = load(tmp_path)
+    settings = study.user_attrs["settings"]
+    assert settings["env"] == "TaskAlloc/Almighty-v0" and settings["n_timesteps"] == 40
+    assert set(settings["search_space"]) >= {"learning_rate", "batch_size_pow"}
+    args = worker_args(tmp_path, 2)
+    args[args.index("TaskAlloc/Almighty-v0")] = "TaskAlloc/EPT-v0"
+    with pytest.raises(SystemExit, match=r"other settings \(env"):
+        runner.main(args)
+    assert len(load(tmp_path).trials) == 1  # nothing added
+
+
+def test_stale_trials_are_found_by_heartbeat_not_pid(tmp_path):
+    """A running trial whose recorded pid is alive but unrelated (pid 1 in a container) and whose heartbeat stopped is
+    failed and queued again; a trial with a recent heartbeat is left running whatever its pid."""
+    study = optuna.create_study(study_name="s", storage=runner.make_storage(str(tmp_path / "s.log"), "s"))
+    stale, live = study.ask({"x": optuna.distributions.FloatDistribution(0, 1)}), study.ask()
+    for trial, beat in ((stale, time.time() - 600), (live, time.time())):
+        trial.set_user_attr("pid", 1)
+        trial.set_user_attr("host", "elsewhere")
+        trial.set_user_attr("heartbeat", beat)
+    assert runner.recover_stale_trials(study, grace_period=120) == [stale.number]
+    states = {t.number: t.state for t in study.trials}
+    assert states[stale.number] == TrialState.FAIL and states[live.number] == TrialState.RUNNING
+    retry = [t for t in study.trials if t.user_attrs.get("retry_of") == stale.number]
+    assert len(retry) == 1 and retry[0].state == TrialState.WAITING
+
+
+def test_heartbeat_thread_beats_while_the_trial_runs():
+    study = optuna.create_study()
+    trial = study.ask()
+    with runner.Heartbeat(trial, interval=0.05):
+        first = study.trials[0].user_attrs["heartbeat"]
+        time.sleep(0.3)
+        assert study.trials[0].user_attrs["heartbeat"] > first
+
+
+def test_outputs_go_next_to_the_journal(tmp_path, monkeypatch):
+    """Started from another folder, a study writes its summaries beside its journal, not into the current folder."""
+    elsewhere = tmp_path / "cwd"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    store = tmp_path / "store"
+    args = [a if a != str(tmp_path / "s.log") else str(store / "s.log") for a in worker_args(tmp_path, 1)]
+    runner.main(args)
+    assert (store / "s" / "trials.csv").exists() and (store / "s" / "best.yml").exists()
+    assert list(elsewhere.iterdir()) == []

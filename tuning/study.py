@@ -7,27 +7,32 @@ pruner on the intermediate evaluations, until the study holds ``--n-trials`` fin
 
 Storage:
 
-- default: an Optuna journal file ``studies/<study-name>.log`` (file-locked, append-only: a worker killed at any
+- default: an Optuna journal file ``<out>/<study-name>.log`` (file-locked, append-only: a worker killed at any
   moment loses no completed trial). Several workers on one machine, or on machines sharing the folder, run the same
-  study. A worker's running trial is tagged with its host and pid; a worker that starts later marks the trials of
-  dead local workers as failed and queues their parameters again.
-- ``postgresql://user:password@host/db`` (or any SQLAlchemy URL): Optuna's RDB storage with heartbeats. Workers on
-  many machines share the study; a trial whose worker stops sending heartbeats is failed after the grace period and
-  retried (``RetryHeartbeatStaleTrialCallback``).
+  study. A worker records a heartbeat on its running trial every ``--heartbeat-interval`` seconds; a worker that starts
+  later fails the running trials whose heartbeat is older than ``--heartbeat-grace`` and queues their parameters again.
+  A last record cut mid-line (a crash while writing) is moved aside to ``<journal>.torn-<time>`` before anything is
+  appended; a journal damaged elsewhere is refused with the line that is wrong.
+- ``postgresql://user:password@host/db`` (or any SQLAlchemy URL): Optuna's RDB storage with its own heartbeats.
+  Workers on many machines share the study; a trial whose worker stops sending heartbeats is failed after the grace
+  period and retried (``RetryHeartbeatStaleTrialCallback``).
 
-When a worker finishes it writes ``<out>/<study-name>/``: ``trials.csv`` (every trial), ``best.yml`` (the best
-parameters as a zoo YAML block keyed by the env id, ready to paste into ``zoo_configs/two_stage_sac.yml``) and
-``importance.png`` (parameter importances, PED-ANOVA).
+The study records its env, env keywords, trial budget and search space; resuming it with other ones is refused (their
+trials would be mixed). When a worker finishes it writes ``<study-name>/`` next to the journal file (under ``--out``
+for an RDB URL): ``trials.csv`` (every trial), ``best.yml`` (the best parameters as a zoo YAML block keyed by the env
+id, ready to paste into ``zoo_configs/two_stage_sac.yml``) and ``importance.png`` (parameter importances, PED-ANOVA).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import os
 import socket
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -36,7 +41,7 @@ from typing import Any
 import gymnasium as gym
 import optuna
 import yaml
-from optuna.storages.journal import JournalFileBackend
+from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock, JournalFileSymlinkLock
 from optuna.trial import TrialState
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.monitor import Monitor
@@ -90,18 +95,67 @@ class TrialEvalCallback(EvalCallback):
         return True
 
 
-def make_storage(url: str | None, study_name: str, folder: str = "studies") -> optuna.storages.BaseStorage:
-    """The study's storage: a journal file (default ``<folder>/<study_name>.log``, or a path ending in ``.log``) or an
-    RDB URL (``postgresql://…``, ``sqlite:///…``) with heartbeats and retries of failed trials.
+def repair_journal(path: Path, lock: JournalFileSymlinkLock | JournalFileOpenLock) -> Path | None:
+    """Make a journal file safe to append to, under the journal's own lock (so no worker is writing meanwhile).
+
+    A last line without its newline is a record cut mid-write: it is moved to ``<path>.torn-<time>`` and cut off,
+    because Optuna would append the next record onto it and leave a file it cannot read. Any other line that is not a
+    JSON record (a damaged file, or not a journal at all) is refused with a clear error: nothing is written.
+
+    :return: the file holding the cut-off bytes, or None when the journal was whole
+    """
+    if not path.exists() or path.stat().st_size == 0:
+        return None
+    while not lock.acquire():
+        time.sleep(0.05)
+    try:
+        data = path.read_bytes()
+        cut = data.rfind(b"\n") + 1
+        whole, tail = data[:cut], data[cut:]
+        hint = " (an SQLite database: use sqlite:///PATH)" if data.startswith(b"SQLite format 3") else ""
+        lines = whole.splitlines()
+        if tail and not tail.startswith(b"{"):  # not the start of a record, so not a record cut mid-write
+            lines.append(tail)
+        for number, line in enumerate(lines, 1):
+            try:
+                json.loads(line)
+            except (UnicodeDecodeError, json.JSONDecodeError):
+                raise ValueError(
+                    f"{path} is not a readable Optuna journal{hint}: line {number} is not a JSON record; "
+                    "nothing was written to it"
+                ) from None
+        torn = None
+        if tail:  # a record cut mid-write: keep its bytes aside, then cut it off
+            torn = path.with_name(f"{path.name}.torn-{time.strftime('%Y%m%d-%H%M%S')}")
+            torn.write_bytes(tail)
+            with path.open("r+b") as f:
+                f.truncate(cut)
+        return torn
+    finally:
+        lock.release()
+
+
+def make_storage(
+    url: str | None, study_name: str, folder: str = "studies", heartbeat_interval: int = 30, grace_period: int = 120
+) -> optuna.storages.BaseStorage:
+    """The study's storage: a journal file (default ``<folder>/<study_name>.log``, or a path) repaired if its last
+    record was cut (:func:`repair_journal`), or an RDB URL (``postgresql://…``, ``sqlite:///…``) with heartbeats and
+    retries of failed trials.
 
     :param url: ``None``, a journal file path, or an SQLAlchemy URL
     :param study_name: study name (names the default journal file)
     :param folder: folder of the default journal file
+    :param heartbeat_interval: seconds between heartbeats (RDB storage)
+    :param grace_period: seconds without a heartbeat after which a running trial counts as dead (RDB storage)
     """
     if url is None or "://" not in url:
-        path = Path(url) if url else Path(folder) / f"{study_name}.log"
+        path = journal_path(url, study_name, folder)
         path.parent.mkdir(parents=True, exist_ok=True)
-        return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
+        lock = JournalFileSymlinkLock(str(path))
+        torn = repair_journal(path, lock)
+        if torn is not None:
+            print(f"{path}: its last record was cut mid-write; moved it to {torn} and cut it off")
+        return optuna.storages.JournalStorage(JournalFileBackend(str(path), lock_obj=lock))
     import sqlalchemy.exc
 
     for attempt in range(5):
@@ -110,8 +164,8 @@ def make_storage(url: str | None, study_name: str, folder: str = "studies") -> o
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                 return optuna.storages.RDBStorage(
                     url,
-                    heartbeat_interval=30,
-                    grace_period=120,
+                    heartbeat_interval=heartbeat_interval,
+                    grace_period=grace_period,
                     heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=2),
                 )
         except sqlalchemy.exc.IntegrityError:  # workers starting together race to create the schema: the loser retries
@@ -119,23 +173,54 @@ def make_storage(url: str | None, study_name: str, folder: str = "studies") -> o
     raise RuntimeError(f"could not open the study storage {url} (schema creation kept failing)")
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+def journal_path(url: str | None, study_name: str, folder: str) -> Path:
+    """The journal file of a study: ``url`` when given, else ``<folder>/<study_name>.log``."""
+    return Path(url) if url else Path(folder) / f"{study_name}.log"
 
 
-def recover_dead_workers(study: optuna.Study) -> list[int]:
-    """Fail the running trials of dead workers of this host and queue their parameters again (journal storage has
-    no heartbeat). :return: the numbers of the trials failed."""
-    host = socket.gethostname()
+def output_folder(args: argparse.Namespace) -> Path:
+    """Where the summaries go: ``<study-name>/`` beside the journal file, or under ``--out`` for an RDB URL."""
+    if args.storage is None or "://" not in args.storage:
+        return journal_path(args.storage, args.study_name, args.out).parent / args.study_name
+    return Path(args.out) / args.study_name
+
+
+class Heartbeat:
+    """Records the time on a running trial (user attribute ``heartbeat``) every ``interval`` seconds from a thread,
+    so that other workers can tell a live trial from one whose worker died (journal storage has no heartbeat of its
+    own).
+
+    :param trial: the running trial
+    :param interval: seconds between heartbeats
+    """
+
+    def __init__(self, trial: optuna.Trial, interval: float) -> None:
+        self.trial, self.interval = trial, interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            self.trial.set_user_attr("heartbeat", time.time())
+
+    def __enter__(self) -> Heartbeat:
+        self.trial.set_user_attr("heartbeat", time.time())
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def recover_stale_trials(study: optuna.Study, grace_period: float) -> list[int]:
+    """Fail the running trials whose last heartbeat is older than ``grace_period`` seconds (their worker died, on any
+    host) and queue their parameters again. :return: the numbers of the trials failed."""
+    now = time.time()
     failed = []
     for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-        if trial.user_attrs.get("host") != host or _pid_alive(int(trial.user_attrs.get("pid", -1))):
+        start = trial.datetime_start.timestamp() if trial.datetime_start is not None else now
+        if now - float(trial.user_attrs.get("heartbeat", start)) <= grace_period:
             continue
         study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)  # no public API fails another's trial
         study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
@@ -143,11 +228,41 @@ def recover_dead_workers(study: optuna.Study) -> list[int]:
     return failed
 
 
+def search_space() -> dict[str, str]:
+    """The distributions :func:`sample_two_stage_sac_params` draws from, as JSON text by parameter name."""
+    probe = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    trial = probe.ask()
+    sample_two_stage_sac_params(trial, 0, 1, {})
+    return {name: optuna.distributions.distribution_to_json(d) for name, d in sorted(trial.distributions.items())}
+
+
+def check_study_settings(study: optuna.Study, args: argparse.Namespace) -> None:
+    """Record the study's env, env keywords, trial budget and search space on its first run, and refuse to resume it
+    with other ones: trials of another env or budget would be compared as if they were alike."""
+    settings = {
+        "env": args.env,
+        "env_kwargs": args.env_kwargs or {},
+        "n_timesteps": args.n_timesteps,
+        "search_space": search_space(),
+    }
+    recorded = study.user_attrs.get("settings")  # one attribute: workers starting together never see half of it
+    if recorded is None and not study.trials:
+        study.set_user_attr("settings", settings)
+        return
+    differ = sorted(key for key in settings if (recorded or {}).get(key) != settings[key])
+    if differ:
+        shown = {key: (recorded or {}).get(key, "not recorded") for key in differ if key != "search_space"}
+        raise ValueError(
+            f"study {study.study_name!r} was run with other settings ({', '.join(differ)}; recorded: {shown}): "
+            "resume it with the same --env, --env-kwargs and --n-timesteps, or choose another --study-name"
+        )
+
+
 def objective(trial: optuna.Trial, args: argparse.Namespace) -> float:
     """Train TwoStageSAC with sampled hyperparameters and return its last evaluation (mean episode return).
 
     Pruned by the median pruner on intermediate evaluations, and when training diverges (NaN)."""
-    trial.set_user_attr("host", socket.gethostname())
+    trial.set_user_attr("host", socket.gethostname())  # for reading the study; liveness is the heartbeat
     trial.set_user_attr("pid", os.getpid())
     env_kwargs = args.env_kwargs or {}
     kwargs = sample_two_stage_sac_params(trial, 0, 1, {})
@@ -179,9 +294,9 @@ def count(study: optuna.Study, states: tuple[TrialState, ...], below: int | None
 
 def open_study(args: argparse.Namespace) -> optuna.Study:
     """Create the study, or load it by name (resume): TPE sampler, median pruner on the intermediate evaluations."""
-    return optuna.create_study(
+    study = optuna.create_study(
         study_name=args.study_name,
-        storage=make_storage(args.storage, args.study_name, args.out),
+        storage=make_storage(args.storage, args.study_name, args.out, args.heartbeat_interval, args.heartbeat_grace),
         direction="maximize",
         load_if_exists=True,
         # Each worker's sampler gets its own seed: workers seeded alike would propose the same parameters.
@@ -190,13 +305,16 @@ def open_study(args: argparse.Namespace) -> optuna.Study:
         ),
         pruner=optuna.pruners.MedianPruner(n_startup_trials=args.n_startup_trials, n_warmup_steps=args.n_evaluations // 3),
     )
+    check_study_settings(study, args)
+    return study
 
 
 def run_worker(args: argparse.Namespace) -> optuna.Study:
     """Run trials until the study holds ``args.n_trials`` finished trials; :return: the study."""
     study = open_study(args)
-    if isinstance(study._storage, optuna.storages.JournalStorage):
-        recovered = recover_dead_workers(study)
+    journal = isinstance(study._storage, optuna.storages.JournalStorage)
+    if journal:
+        recovered = recover_stale_trials(study, args.heartbeat_grace)
         if recovered:
             print(f"re-queued the trials of dead workers: {recovered}")
     while count(study, (*FINISHED, TrialState.RUNNING)) < args.n_trials:
@@ -207,7 +325,11 @@ def run_worker(args: argparse.Namespace) -> optuna.Study:
             study.tell(trial, state=TrialState.FAIL)
             break
         try:
-            value = objective(trial, args)
+            if journal:
+                with Heartbeat(trial, args.heartbeat_interval):
+                    value = objective(trial, args)
+            else:
+                value = objective(trial, args)
         except optuna.TrialPruned as pruned:
             study.tell(trial, state=TrialState.PRUNED)
             print(f"trial {trial.number} pruned {pruned}".rstrip())
@@ -295,12 +417,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--eval-episodes", type=int, default=3, help="episodes per evaluation")
     parser.add_argument("--n-startup-trials", type=int, default=5, help="random trials before TPE; trials before pruning")
     parser.add_argument("--study-name", default=None, help="study name (default: tune-<env name>)")
-    parser.add_argument("--storage", default=None, help="journal file path or RDB URL (default: studies/<study-name>.log)")
-    parser.add_argument("--out", default="studies", help="folder of the default journal file and of the summaries")
+    parser.add_argument("--storage", default=None, help="journal file path or RDB URL (default: <out>/<study-name>.log)")
+    parser.add_argument("--out", default="studies", help="folder of the default journal file; summaries of an RDB study")
+    parser.add_argument("--heartbeat-interval", type=int, default=30, help="seconds between a running trial's heartbeats")
+    parser.add_argument("--heartbeat-grace", type=int, default=120, help="seconds without a heartbeat: the trial is dead")
     parser.add_argument("--seed", type=int, default=0, help="trial k trains with seed + k; samplers use it with the pid")
     parser.add_argument("--device", default="auto", help="torch device")
     args = parser.parse_args(argv)
-    for name in ("n_trials", "n_timesteps", "n_evaluations", "eval_episodes"):
+    for name in ("n_trials", "n_timesteps", "n_evaluations", "eval_episodes", "heartbeat_interval", "heartbeat_grace"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.env not in gym.registry:
@@ -317,8 +441,11 @@ def main(argv: list[str] | None = None) -> None:
 
     th.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = run_worker(args)
-    summarize(study, args.env, Path(args.out) / args.study_name)
+    try:
+        study = run_worker(args)
+    except ValueError as error:  # a damaged journal or a study of other settings: say so, write nothing
+        raise SystemExit(f"error: {error}") from None
+    summarize(study, args.env, output_folder(args))
 
 
 if __name__ == "__main__":
