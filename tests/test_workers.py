@@ -183,3 +183,45 @@ def test_frozen_manager_does_not_learn():
     _, market = co_train("TaskAlloc/RBF-v0", 30, manager, workers, train_manager=False, seed=0)
     assert th.equal(params(manager.policy), before) and manager._n_updates == 0
     assert workers.ddpg._n_updates > 0  # the workers learned against it
+
+
+def test_cli_reports_only_the_files_it_wrote(tmp_path, capsys):
+    """Too few steps to end an episode: no incomes file exists, and the CLI says so instead of claiming it."""
+    from sb3_taskalloc.workers import main
+
+    main(["--manager", "greedy", "--timesteps", "30", "--out", str(tmp_path / "o9")])
+    out = capsys.readouterr().out
+    assert sorted(p.name for p in (tmp_path / "o9").iterdir()) == ["workers.json", "workers.zip"]
+    assert "incomes.csv" not in out.splitlines()[-1] and "workers.zip" in out.splitlines()[-1]
+    assert "no episode ended" in out
+
+
+def test_cli_checks_its_inputs_before_training(tmp_path, monkeypatch):
+    from sb3_taskalloc.experiments import cotrain
+    from sb3_taskalloc.workers import main
+
+    monkeypatch.setattr(cotrain, "co_train", lambda *a, **k: pytest.fail("trained before the inputs were checked"))
+    with pytest.raises(SystemExit):
+        main(["--manager", "greedy", "--conf-file", str(tmp_path / "nosuch.yml"), "--out", str(tmp_path)])
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(SystemExit, match="cannot write to --out"):
+        main(["--manager", "greedy", "--out", str(blocker / "sub")])
+
+
+def test_default_worker_config_does_not_depend_on_the_current_folder(tmp_path, monkeypatch):
+    """Started outside the repository, the CLI still reads the repository's DDPG settings (MT's σ 5.0, not 0.5)."""
+    from sb3_taskalloc.experiments import cotrain
+    from sb3_taskalloc.market import load_worker_config
+
+    seen = {}
+
+    def fake(env_id, steps, manager, workers, **kwargs):
+        seen.update(kwargs["worker_kwargs"])
+        raise SystemExit(0)
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cotrain, "co_train", fake)
+    with pytest.raises(SystemExit):
+        cotrain.main(["--env", "TaskAlloc/MT-v0", "--manager", "greedy", "--out", str(tmp_path / "o")])
+    assert seen == load_worker_config(cotrain.DEFAULT_CONF, "TaskAlloc/MT-v0") and seen

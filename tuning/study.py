@@ -49,6 +49,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 import envs  # noqa: F401  (registers the TaskAlloc/* ids)
 from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
 from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
 
 #: Trial states that count towards ``--n-trials``.
@@ -348,7 +349,7 @@ def write_trials_csv(study: optuna.Study, path: Path) -> None:
     trials = study.get_trials(deepcopy=False)
     params = sorted({k for t in trials for k in t.params})
     attrs = sorted({k for t in trials for k in t.user_attrs})
-    with path.open("w", newline="") as f:
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(
             ["number", "state", "value", "datetime_start", "duration_s"]
@@ -375,7 +376,7 @@ def summarize(study: optuna.Study, env_id: str, folder: Path) -> dict[str, Any]:
     best = convert_two_stage_sac_params(study.best_trial.params)
     block = {env_id: {"policy": "TAMPolicy", **best}}
     header = f"# Best of study {study.study_name!r}: trial {study.best_trial.number}, mean return {study.best_value:.4g}\n"
-    (folder / "best.yml").write_text(header + yaml.safe_dump(block, sort_keys=False))
+    atomic_write_text(folder / "best.yml", header + yaml.safe_dump(block, sort_keys=False))
     if len(complete) >= 2:
         from optuna.importance import PedAnovaImportanceEvaluator
 

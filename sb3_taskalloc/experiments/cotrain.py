@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import tempfile
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -18,6 +19,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.utils import set_random_seed
 
+from sb3_taskalloc.common.utils import atomic_path
 from sb3_taskalloc.experiments.plots import plot_incomes
 from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, load_worker_config, make_market
 
@@ -80,18 +82,37 @@ def co_train(
     return manager, market
 
 
-def save_history(history: list[dict[str, float]], folder: Path, title: str) -> None:
+#: The workers' DDPG settings by env id, beside the package in a source checkout.
+DEFAULT_CONF = Path(__file__).resolve().parents[2] / "zoo_configs" / "ddpg.yml"
+
+
+def save_history(history: list[dict[str, float]], folder: Path, title: str) -> list[Path]:
     """Write ``incomes.csv`` and ``incomes.png`` (manager, worker and total income per episode, the paper's RBF
-    figure f, with the workers' mean bid on a second axis)."""
+    figure f, with the workers' mean bid on a second axis) when at least one episode ended.
+
+    :return: the files written (none without a finished episode)
+    """
     folder.mkdir(parents=True, exist_ok=True)
     if not history:
-        return
-    with (folder / "incomes.csv").open("w", newline="") as f:
+        return []
+    with atomic_path(folder / "incomes.csv") as tmp, tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["episode", *history[0]])
         writer.writeheader()
         for k, row in enumerate(history):
             writer.writerow({"episode": k, **row})
-    plot_incomes(history, folder / "incomes.png", title)
+    return [folder / "incomes.csv", plot_incomes(history, folder / "incomes.png", title)]
+
+
+def writable_folder(path: str | Path) -> Path:
+    """``path`` created and checked for writing before any work is done, or ``SystemExit`` naming the problem."""
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise SystemExit(f"error: cannot write to --out {folder}: {error.strerror or error}") from None
+    return folder
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -105,10 +126,16 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--workers", default=None, help="saved workers to start from (path without suffix)")
     parser.add_argument("--freeze-workers", action="store_true", help="the workers do not learn")
-    parser.add_argument("--conf-file", default="zoo_configs/ddpg.yml", help="DDPG settings of new workers (YAML by env id)")
+    parser.add_argument(
+        "--conf-file", default=None, help=f"DDPG settings of new workers, YAML by env id (default: {DEFAULT_CONF})"
+    )
     args = parser.parse_args(argv)
     if args.timesteps < 1:
         parser.error(f"--timesteps must be >= 1, got {args.timesteps}")
+    if args.conf_file is not None and not Path(args.conf_file).is_file():
+        parser.error(f"--conf-file {args.conf_file} does not exist")
+    conf_file = Path(args.conf_file) if args.conf_file else DEFAULT_CONF
+    out = writable_folder(args.out)  # before training: an unwritable folder must not cost a run
     import envs  # noqa: F401  (registers the TaskAlloc ids)
     from sb3_taskalloc.baselines import GreedyAllocator
     from sb3_taskalloc.two_stage_sac import TwoStageSAC
@@ -120,7 +147,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.manager != "learn":
         manager = TwoStageSAC.load(args.manager, buffer_size=1)
     workers = BiddingWorkers.load(args.workers, seed=args.seed) if args.workers else None
-    worker_kwargs = load_worker_config(args.conf_file, args.env) if Path(args.conf_file).exists() else {}
+    worker_kwargs = load_worker_config(conf_file, args.env) if conf_file.is_file() else {}
     manager, market = co_train(
         args.env,
         args.timesteps,
@@ -132,19 +159,22 @@ def main(argv: list[str] | None = None) -> None:
         worker_kwargs=worker_kwargs,
         progress_bar=True,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    written = []
     if isinstance(manager, TwoStageSAC) and args.manager == "learn":
         manager.save(out / "manager.zip")
+        written.append(out / "manager.zip")
     market.workers.save(out / "workers")
-    save_history(market.history, out, f"{args.env}: manager ({args.manager}) and bidding workers")
+    written += [out / "workers.zip", out / "workers.json"]
+    written += save_history(market.history, out, f"{args.env}: manager ({args.manager}) and bidding workers")
     last = market.history[-5:]
     if last:
         means = {
             k: float(np.mean([h[k] for h in last])) for k in ("manager_income", "worker_income", "total_income", "mean_bid")
         }
         print(f"last {len(last)} episodes: " + ", ".join(f"{k} {v:.3f}" for k, v in means.items()))
-    print(f"wrote {out}/incomes.csv, incomes.png, workers.zip" + (", manager.zip" if args.manager == "learn" else ""))
+    else:
+        print("no episode ended within --timesteps: no incomes.csv or incomes.png")
+    print("wrote " + ", ".join(str(p) for p in written))
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from sb3_taskalloc.common.utils import atomic_path
+
 
 def pyplot() -> Any:
     """``matplotlib.pyplot`` on the headless Agg backend (imported on first use: the library never needs it)."""
@@ -22,11 +24,10 @@ def pyplot() -> Any:
 def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> Path:
     """Lay out, write (creating the folder) and close ``fig``; returns the path."""
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
     pyplot().close(fig)
-    return path
+    return Path(path)
 
 
 def smooth(values: np.ndarray, window: int = 11) -> np.ndarray:

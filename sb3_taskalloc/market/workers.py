@@ -20,6 +20,8 @@ from gymnasium import spaces
 from stable_baselines3 import DDPG
 from stable_baselines3.common.logger import configure
 
+from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
+
 
 class FeatureLayout(Protocol):
     """The columns of the cells in ``entity_features`` and ``task_features`` (``envs.layout.ObsLayout``)."""
@@ -173,7 +175,8 @@ class BiddingWorkers:
     def save(self, path: str | Path) -> None:
         """Save the DDPG model (``<path>.zip``) and the market settings (``<path>.json``)."""
         path = Path(path)
-        self.ddpg.save(path.with_suffix(".zip"))
+        with atomic_path(path.with_suffix(".zip")) as tmp:
+            self.ddpg.save(tmp)
         state = {
             "n_resources": self.n_resources,
             "bid_max": self.bid_max,
@@ -184,7 +187,7 @@ class BiddingWorkers:
             "learning_starts": self.learning_starts,
             "gradient_steps": self.gradient_steps,
         }
-        path.with_suffix(".json").write_text(json.dumps(state, indent=2))
+        atomic_write_text(path.with_suffix(".json"), json.dumps(state, indent=2))
 
     @classmethod
     def load(cls, path: str | Path, seed: int | None = None, device: str = "auto") -> BiddingWorkers:
