@@ -127,8 +127,10 @@ class TaskAllocEnv(gym.Env):
         self.max_entities = int(max_entities) if max_entities is not None else n
         self.max_tasks = int(max_tasks)
         check_config(
-            entities, tasks, self.max_entities, self.max_tasks, travel, arrival, arrival_count, decay, grid_size, render_mode,
-            self.metadata["render_modes"],
+            entities, tasks, self.metadata["render_modes"], max_entities=self.max_entities, max_tasks=self.max_tasks,
+            grid_size=grid_size, travel=travel, travel_cost=travel_cost, arrival=arrival, arrival_period=arrival_period,
+            arrival_count=arrival_count, reward_scale=reward_scale, demand_noise=demand_noise, decay=decay,
+            decay_after=decay_after, bid_max=bid_max, render_mode=render_mode,
         )  # fmt: skip
 
         self.entities = entities
@@ -301,6 +303,8 @@ class TaskAllocEnv(gym.Env):
 
     def action_masks(self) -> np.ndarray:
         """Flat (N·(M+1),) boolean mask in sb3-contrib's MultiDiscrete layout (used by MaskablePPO)."""
+        if not self._state_ready:
+            raise RuntimeError("call reset() before action_masks()")
         return self._action_mask(self._free, self._open).astype(bool)
 
     def _action_mask(self, entity_mask: np.ndarray, task_mask: np.ndarray) -> np.ndarray:

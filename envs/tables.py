@@ -46,6 +46,14 @@ class TaskTable:
         self.rows = np.asarray(self.rows, dtype=np.float64)
         if self.rows.ndim != 2 or self.rows.shape[1] < 2:
             raise ValueError(f"task table must be (T, 1 + K) = [reward, demands...], got shape {self.rows.shape}")
+        if len(self.rows) == 0:
+            raise ValueError("the task table is empty: at least one task is needed")
+        _check_values("task rewards", self.rows[:, 0], positive=True)
+        _check_values("task demands", self.rows[:, 1:])
+        if not (self.rows[:, 1:] > 0).any(1).all():
+            raise ValueError(
+                f"tasks {np.flatnonzero(~(self.rows[:, 1:] > 0).any(1)).tolist()} demand nothing: they would never open"
+            )
         if self.positions is not None:
             self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
             if len(self.positions) != len(self.rows):
@@ -78,10 +86,15 @@ class EntityTable:
         self.supply = np.asarray(self.supply, dtype=np.float64)
         if self.supply.ndim != 2 or len(self.supply) != len(self.cost):
             raise ValueError(f"entity supply must be (n, K) with n = {len(self.cost)}, got shape {self.supply.shape}")
+        if len(self.cost) == 0:
+            raise ValueError("the entity table is empty: at least one entity is needed")
+        _check_values("entity costs", self.cost)
+        _check_values("entity supplies", self.supply)
         if self.positions is not None:
             self.positions = np.asarray(self.positions, dtype=np.int64).reshape(-1, 2)
         if self.wire_cost is not None:
             self.wire_cost = np.asarray(self.wire_cost, dtype=np.float64).reshape(-1)
+            _check_values("wire costs", self.wire_cost)
 
     def __len__(self) -> int:
         return len(self.cost)
@@ -95,6 +108,16 @@ class EntityTable:
         out = np.zeros((n_rows, *column.shape[1:]), dtype=np.float64 if column.dtype != bool else bool)
         out[: len(column)] = column
         return out
+
+
+def _check_values(what: str, values: np.ndarray, positive: bool = False) -> None:
+    """Raise ``ValueError`` unless every value is finite and ≥ 0 (> 0 with ``positive``): costs, supplies, demands and
+    rewards outside that range would put observations outside the observation space."""
+    bad = ~np.isfinite(values) | ((values <= 0) if positive else (values < 0))
+    if bad.any():
+        where = np.argwhere(bad)[0].tolist()
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{what} must be finite and {bound}; got {values[tuple(where)]} at {where}")
 
 
 def clone(obj: Any, memo: dict[int, Any], shared: frozenset[str]) -> Any:

@@ -3,6 +3,7 @@ what is wrong."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -14,41 +15,56 @@ from envs.tables import EntityTable, TaskTable
 EPS = 1e-6
 
 
-def check_config(
-    entities: EntityTable,
-    tasks: TaskTable,
-    max_entities: int,
-    max_tasks: int,
-    travel: str,
-    arrival: str,
-    arrival_count: tuple[int, int],
-    decay: float,
-    grid_size: int | None,
-    render_mode: str | None,
-    render_modes: Sequence[str],
-) -> None:
-    """Raise ``ValueError`` for a configuration the env cannot run (see ``TaskAllocEnv.__init__`` for the meanings)."""
-    n = len(entities)
-    if max_entities < n:
-        raise ValueError(f"max_entities={max_entities} is smaller than the {n} entities of the table")
-    if max_tasks < 1:
-        raise ValueError(f"max_tasks must be >= 1, got {max_tasks}")
+#: Numeric settings: (lowest, highest, whether the lowest is excluded, whether the highest is excluded).
+RANGES: dict[str, tuple[float, float, bool, bool]] = {
+    "max_tasks": (1, math.inf, False, True),
+    "arrival_period": (1, math.inf, False, True),
+    "reward_scale": (0.0, math.inf, True, True),
+    "travel_cost": (0.0, math.inf, False, True),
+    "demand_noise": (0.0, 1.0, False, True),
+    "decay": (0.0, 1.0, True, False),
+    "decay_after": (0, math.inf, False, True),
+}
+
+
+def check_range(name: str, value: float, low: float, high: float, low_open: bool, high_open: bool) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is a number in the interval."""
+    ok = isinstance(value, int | float) and not math.isnan(value)
+    ok = ok and (value > low if low_open else value >= low) and (value < high if high_open else value <= high)
+    if not ok:
+        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+        raise ValueError(f"{name} must lie in {interval}, got {value!r}")
+
+
+def check_config(entities: EntityTable, tasks: TaskTable, render_modes: Sequence[str], **settings: Any) -> None:
+    """Raise ``ValueError`` for a configuration the env cannot run, naming the setting (see ``TaskAllocEnv.__init__``
+    for their meanings)."""
+    s = settings
+    for name, bounds in RANGES.items():
+        check_range(name, s[name], *bounds)
+    if s["max_entities"] < len(entities):
+        raise ValueError(f"max_entities={s['max_entities']} is smaller than the {len(entities)} entities of the table")
+    if s["grid_size"] is not None:
+        check_range("grid_size", s["grid_size"], 1, math.inf, False, True)
+    if s["bid_max"] is not None:
+        check_range("bid_max", s["bid_max"], 0.0, math.inf, True, True)
     if tasks.n_resources != entities.supply.shape[1]:
         raise ValueError(
             f"tasks demand {tasks.n_resources} resources but entities supply {entities.supply.shape[1]}: K must match"
         )
-    if travel not in ("none", "manhattan", "chebyshev"):
-        raise ValueError(f"travel must be 'none', 'manhattan' or 'chebyshev', got {travel!r}")
-    if arrival not in ("random", "reference", "static"):
-        raise ValueError(f"arrival must be 'random', 'reference' or 'static', got {arrival!r}")
-    if arrival_count[0] < 0 or arrival_count[1] < arrival_count[0]:
-        raise ValueError(f"arrival_count must be an increasing (low, high) pair, got {arrival_count}")
-    if not 0.0 < decay <= 1.0:
-        raise ValueError(f"decay must lie in (0, 1], got {decay}")
-    if render_mode is not None and render_mode not in render_modes:
-        raise ValueError(f"render_mode must be one of {list(render_modes)}, got {render_mode!r}")
-    if travel != "none" and (entities.positions is None or grid_size is None):
+    for name, choices in (("travel", ("none", "manhattan", "chebyshev")), ("arrival", ("random", "reference", "static"))):
+        if s[name] not in choices:
+            raise ValueError(f"{name} must be one of {list(choices)}, got {s[name]!r}")
+    low, high = s["arrival_count"]
+    if low < 0 or high < low:
+        raise ValueError(f"arrival_count must be an increasing (low, high) pair, got {s['arrival_count']}")
+    if s["render_mode"] is not None and s["render_mode"] not in render_modes:
+        raise ValueError(f"render_mode must be one of {list(render_modes)}, got {s['render_mode']!r}")
+    if s["travel"] != "none" and (entities.positions is None or s["grid_size"] is None):
         raise ValueError("travel needs entity positions and a grid_size")
+    for what, cells in (("entity", entities.positions), ("task", tasks.positions)):
+        if cells is not None and s["grid_size"] is not None and ((cells < 0) | (cells >= s["grid_size"])).any():
+            raise ValueError(f"{what} positions must lie on the grid, in [0, {s['grid_size'] - 1}]")
 
 
 def check_action(action: Any, n_entities: int, n_tasks: int) -> np.ndarray:

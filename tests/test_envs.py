@@ -328,3 +328,50 @@ def test_bad_constructor_arguments():
         envs.RBFEnv(decay=1.5)
     with pytest.raises(RuntimeError, match="reset"):
         envs.RBFEnv().step(np.zeros(100, dtype=np.int64))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"reward_scale": 0}, r"reward_scale must lie in \(0.0, inf\)"),
+        ({"travel_cost": -1}, r"travel_cost must lie in \[0.0, inf\)"),
+        ({"grid_size": -5}, "grid_size must lie in"),
+        ({"arrival_period": 0}, "arrival_period must lie in"),
+        ({"demand_noise": 1.5}, "demand_noise must lie in"),
+        ({"decay_after": -1}, "decay_after must lie in"),
+        ({"bid_max": 0.0}, "bid_max must lie in"),
+        ({"max_tasks": 0}, "max_tasks must lie in"),
+        ({"travel": "teleport"}, "travel must be one of"),
+    ],
+)
+def test_degenerate_settings_are_named(kwargs, match):
+    """Settings that would build an env with tasks that never open, observations outside the space or a division by
+    zero on the first step are refused when the env is built."""
+    with pytest.raises(ValueError, match=match):
+        make("TaskAlloc/RBF-v0", **kwargs)
+
+
+def test_degenerate_tables_are_named():
+    from envs import EntityTable, TaskAllocEnv, TaskTable
+
+    ents = EntityTable(cost=[1.0, 1.0], supply=[[1.0], [2.0]])
+    tasks = TaskTable(rows=[[3.0, 1.0]])
+    TaskAllocEnv(ents, tasks, max_tasks=1).reset(seed=0)  # the valid reference
+    cases = [
+        (lambda: TaskTable(rows=[[-3.0, 1.0]]), "task rewards must be finite and > 0"),
+        (lambda: TaskTable(rows=[[3.0, 0.0]]), "demand nothing"),
+        (lambda: TaskTable(rows=np.zeros((0, 2))), "task table is empty"),
+        (lambda: EntityTable(cost=[1.0], supply=[[-1.0]]), "entity supplies must be finite and >= 0"),
+        (lambda: EntityTable(cost=[np.nan], supply=[[1.0]]), "entity costs must be finite"),
+        (lambda: EntityTable(cost=[], supply=np.zeros((0, 1))), "entity table is empty"),
+        (lambda: TaskAllocEnv(EntityTable([1.0], [[1.0]], positions=[[9, 0]]), tasks, grid_size=3), "on the grid"),
+    ]
+    for build, match in cases:
+        with pytest.raises(ValueError, match=match):
+            build()
+
+
+def test_action_masks_before_reset_is_named():
+    env = make("TaskAlloc/RBF-v0").unwrapped
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before action_masks"):
+        env.action_masks()
