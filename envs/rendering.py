@@ -102,7 +102,7 @@ def render_ansi(snap: RenderSnapshot) -> str:
 
 def save_gif(
     env: gym.Env,
-    policy: Callable[[dict[str, np.ndarray]], Any] | None,
+    policy: Any,
     path: str | Path,
     seed: int | None = 0,
     max_steps: int = 200,
@@ -111,8 +111,8 @@ def save_gif(
     """Run one episode and write it as an animated GIF.
 
     :param env: an environment created with ``render_mode="rgb_array"``
-    :param policy: maps an observation to an action (e.g. ``lambda obs: model.predict(obs, deterministic=True)[0]``);
-        None samples random valid allocations
+    :param policy: anything with SB3's ``predict`` (a model or a baseline allocator, run deterministically), a function
+        from an observation to an action, or None for random valid allocations
     :param path: output file
     :param seed: reset seed
     :param max_steps: stop after this many steps
@@ -121,6 +121,14 @@ def save_gif(
     """
     if env.render_mode != "rgb_array":
         raise ValueError(f"save_gif needs render_mode='rgb_array', got {env.render_mode!r}")
+    if policy is not None and hasattr(policy, "predict"):  # an SB3 model or a baseline allocator
+        model = policy
+
+        def policy(obs: dict[str, np.ndarray]) -> Any:
+            return model.predict(obs, deterministic=True)[0]
+
+    elif policy is not None and not callable(policy):
+        raise TypeError(f"policy must map an observation to an action or have predict(), got {type(policy).__name__}")
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     frames = [Image.fromarray(env.render())]  # type: ignore[arg-type]

@@ -375,3 +375,15 @@ def test_action_masks_before_reset_is_named():
     env = make("TaskAlloc/RBF-v0").unwrapped
     with pytest.raises(RuntimeError, match=r"call reset\(\) before action_masks"):
         env.action_masks()
+
+
+def test_save_gif_takes_models_and_allocators(tmp_path):
+    """Anything with SB3's ``predict`` drives the episode (run deterministically); other objects are named."""
+    from sb3_taskalloc.baselines import GreedyAllocator
+
+    env = gym.make("TaskAlloc/EPT-v0", render_mode="rgb_array")
+    _, greedy_return = save_gif(env, GreedyAllocator(), tmp_path / "greedy.gif", seed=3, max_steps=4)
+    _, fn_return = save_gif(env, lambda o: GreedyAllocator().predict(o)[0], tmp_path / "fn.gif", seed=3, max_steps=4)
+    assert greedy_return == fn_return and (tmp_path / "greedy.gif").stat().st_size > 0
+    with pytest.raises(TypeError, match="have predict"):
+        save_gif(env, 42, tmp_path / "x.gif")

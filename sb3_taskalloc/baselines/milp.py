@@ -35,8 +35,10 @@ class MILPAllocator(Allocator):
     """
 
     def __init__(self, time_limit: float = 10.0, mip_rel_gap: float = 1e-6) -> None:
-        if time_limit <= 0:
-            raise ValueError(f"time_limit must be > 0, got {time_limit}")
+        if not (isinstance(time_limit, int | float) and time_limit > 0):  # NaN fails the comparison too
+            raise ValueError(f"time_limit must be a number of seconds > 0 (inf: no limit), got {time_limit!r}")
+        if not (isinstance(mip_rel_gap, int | float) and 0 <= mip_rel_gap < 1):
+            raise ValueError(f"mip_rel_gap must lie in [0, 1), got {mip_rel_gap!r}")
         self.time_limit = time_limit
         self.mip_rel_gap = mip_rel_gap
         self.last: MILPSolution | None = None

@@ -45,7 +45,8 @@ class RecedingHorizonPlanner(Allocator):
         ``evaluate_policy``); it is cloned, never stepped
     :param population: individuals per iteration
     :param iterations: iterations per re-plan (paper: 1000)
-    :param budget: at most this many rollouts per re-plan (None: ``population × iterations``)
+    :param budget: at most this many search rollouts per re-plan, at least one round (the initial population and one
+        iteration); None: ``population × (1 + iterations)``
     :param horizon: steps of a plan
     :param replan_every: env steps between re-plans
     :param tail: steps of greedy continuation added to each rollout's return
@@ -74,12 +75,15 @@ class RecedingHorizonPlanner(Allocator):
         if population < 2 or iterations < 1 or horizon < 1 or replan_every < 1:
             raise ValueError(f"need population >= 2 and iterations, horizon, replan_every >= 1, got {population}, "
                              f"{iterations}, {horizon}, {replan_every}")  # fmt: skip
-        if budget is not None and budget < population:
-            raise ValueError(f"budget ({budget} rollouts) must be at least the population ({population})")
+        per_iteration = self.rollouts_per_iteration * population
+        if budget is not None and budget < population + per_iteration:
+            raise ValueError(
+                f"budget ({budget} rollouts per re-plan) is below one search round of {type(self).__name__}: the initial "
+                f"population ({population}) plus one iteration ({per_iteration}) = {population + per_iteration} rollouts"
+            )
         self.env: Any = base
         self.population = population
-        per_iteration = self.rollouts_per_iteration * population
-        self.iterations = iterations if budget is None else max(1, (budget - population) // per_iteration)
+        self.iterations = iterations if budget is None else (budget - population) // per_iteration
         self.budget = budget
         self.horizon = horizon
         self.replan_every = replan_every

@@ -99,7 +99,7 @@ BUDGETS: dict[str, Budget] = {
         2,
         1,
         1,
-        {"population": 4, "budget": 8, "horizon": 3, "tail": 2},
+        {"population": 4, "budget": 20, "horizon": 3, "tail": 2},
         sac={"learning_starts": 10, "batch_size": 8, "select_batch_size": 4, "policy_kwargs": {"hidden_dim": 16}},
         ppo={"n_steps": 16, "batch_size": 8, "n_epochs": 1},
         milp={"time_limit": 0.5},
