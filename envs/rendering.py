@@ -5,7 +5,6 @@ The renderers draw a :class:`RenderSnapshot` (``env.unwrapped.render_snapshot()`
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any

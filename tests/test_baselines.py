@@ -200,5 +200,5 @@ def test_planner_errors():
 
 @pytest.mark.parametrize("kwargs", [{"time_limit": float("nan")}, {"time_limit": 0}, {"mip_rel_gap": -0.1}])
 def test_milp_settings_are_checked(kwargs):
-    with pytest.raises(ValueError, match="time_limit|mip_rel_gap"):
+    with pytest.raises(ValueError, match=r"time_limit|mip_rel_gap"):
         MILPAllocator(**kwargs)
