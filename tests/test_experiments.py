@@ -9,6 +9,7 @@ import re
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import pytest
 
 from sb3_taskalloc.experiments.budgets import ENVS, METHODS, ROWS
@@ -179,3 +180,29 @@ def test_goal_lines_use_only_the_tables_seeds(tmp_path):
     assert "Ours / Greedy on the training env: 1.100 (goal ≥ 1)" in run.write_table().read_text()
     two = TableRun("RBF", 2, "smoke", tmp_path, progress=False)
     assert "Ours / Greedy on the training env: 0.800 (goal ≥ 1)" in two.write_table().read_text()
+
+
+def test_diagnose_measures_calibration_and_drift(tmp_path):
+    """The diagnosis of a model reads its critic against Monte-Carlo returns and its actor against the initial rule:
+    untrained, the actor equals its rule (KL 0, no argmax changed); moved away from it, both figures see the drift."""
+    import torch as th
+
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.diagnose import diagnose, write
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/EPT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    fresh = diagnose(model, "TaskAlloc/EPT-v0", episodes=1)
+    assert fresh.kl_per_entity == 0 and fresh.argmax_changed == 0
+    assert fresh.deterministic_return > 0 and fresh.entropy_bonus_mean > 0 and fresh.abs_reward_mean > 0
+    assert -1 <= fresh.q_corr <= 1 and np.isfinite(fresh.q_scale)
+    with th.no_grad():
+        for p in model.policy.actor.parameters():
+            p.add_(th.randn_like(p))
+    moved = diagnose(model, "TaskAlloc/EPT-v0", episodes=1)
+    assert moved.kl_per_entity > 1e-3 and moved.argmax_changed > 0
+    path = write(moved, tmp_path)
+    assert "corr(Q, G)" in path.read_text() and path.with_suffix(".json").exists()
+    no_pre = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/EPT-v0", seed=0, device="cpu", policy_kwargs={"preassign": False, "hidden_dim": 16}
+    )
+    assert np.isnan(diagnose(no_pre, "TaskAlloc/EPT-v0", episodes=1).q_corr)  # no stage-1 critic to read

@@ -1,4 +1,5 @@
-"""``python -m sb3_taskalloc.experiments {table,almighty}``: the paper's results table and its first figure."""
+"""``python -m sb3_taskalloc.experiments {table,almighty,diagnose}``: the paper's results table, its first figure, and
+what a model's critic and actor are doing."""
 
 from __future__ import annotations
 
@@ -27,6 +28,15 @@ def main(argv: list[str] | None = None) -> None:
     fig.add_argument("--steps", type=int, default=1200)
     fig.add_argument("--every", type=int, default=50)
     fig.add_argument("--out", default="results/almighty")
+    diag = sub.add_parser(
+        "diagnose", help="critic calibration, entropy bonus, KL to the initial rule, sampled vs argmax return"
+    )
+    diag.add_argument("--env", required=True, choices=ENVS)
+    diag.add_argument("--model", default=None, help="a saved TwoStageSAC (default: a new one, trained for --steps)")
+    diag.add_argument("--steps", type=int, default=0, help="env steps to train a new model first (0: untrained)")
+    diag.add_argument("--episodes", type=int, default=3, help="sampled and deterministic evaluation episodes each")
+    diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
+    diag.add_argument("--out", default="results/diagnose")
     args = parser.parse_args(argv)
 
     import torch as th
@@ -34,6 +44,9 @@ def main(argv: list[str] | None = None) -> None:
     import envs  # noqa: F401  (registers the TaskAlloc ids)
 
     th.set_num_threads(1)
+    if args.command == "diagnose":
+        _diagnose(parser, args)
+        return
     if args.command == "almighty":
         from sb3_taskalloc.experiments.almighty import almighty_figure
 
@@ -50,6 +63,25 @@ def main(argv: list[str] | None = None) -> None:
     path = TableRun(args.env, args.seeds, args.budget, args.out, args.methods).run()
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.csv')}")
+
+
+def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
+    from sb3_taskalloc.experiments.diagnose import diagnose, write
+
+    if args.steps < 0 or args.episodes < 1:
+        parser.error("--steps must be >= 0 and --episodes >= 1")
+    env_id = f"TaskAlloc/{args.env}-v0"
+    if args.model:
+        model = TwoStageSAC.load(args.model, device="cpu")
+    else:
+        model = TwoStageSAC("TAMPolicy", env_id, seed=args.seed, device="cpu", **zoo_hyperparameters(env_id))
+        if args.steps:
+            model.learn(args.steps, progress_bar=True)
+    path = write(diagnose(model, env_id, args.episodes), args.out)
+    print(path.read_text())
+    print(f"wrote {path}, {path.with_suffix('.json')}")
 
 
 if __name__ == "__main__":

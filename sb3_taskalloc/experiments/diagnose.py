@@ -1,0 +1,170 @@
+"""What the critic and the actor of a TwoStageSAC model are doing, measured on rollouts of its own policy.
+
+``python -m sb3_taskalloc.experiments diagnose --env RBF [--model PATH] [--steps N] [--episodes 3]`` reports:
+
+- critic calibration: on the states of sampled episodes, the correlation and the scale ratio (least-squares slope
+  through the origin) of Q(s, c) = min_k AMIX^k(Q^k_i(s, c_i)) for the executed pre-assignment c against the
+  Monte-Carlo discounted return G_t = Σ_k γ^k r_{t+k}, and against the entropy-inclusive return that the soft target
+  bootstraps, G^H_t = Σ_k γ^k (r_{t+k} + γ α H(s_{t+k+1}));
+- the entropy bonus of the stage-1 target against the reward: mean γ·α·H(s') and mean |r| per transition;
+- the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
+  changed;
+- sampled against deterministic return, on the same evaluation seeds.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+from sb3_taskalloc.common.utils import atomic_write_text
+
+
+@dataclass
+class Diagnosis:
+    """The figures of :func:`diagnose` (NaN where a figure does not apply, e.g. without pre-assignment)."""
+
+    env: str
+    episodes: int
+    gamma: float
+    ent_coef: float
+    sampled_return: float
+    deterministic_return: float
+    q_mean: float
+    mc_return_mean: float
+    q_corr: float
+    q_scale: float
+    soft_return_mean: float
+    q_corr_soft: float
+    entropy_bonus_mean: float
+    abs_reward_mean: float
+    kl_per_entity: float
+    argmax_changed: float
+
+    def table(self) -> str:
+        """A Markdown table of the figures."""
+        rows = [
+            ("return, sampled / deterministic", f"{self.sampled_return:.2f} / {self.deterministic_return:.2f}"),
+            ("critic Q, mean", f"{self.q_mean:.3f}"),
+            ("Monte-Carlo return G, mean", f"{self.mc_return_mean:.3f}"),
+            ("corr(Q, G), scale Q/G", f"{self.q_corr:.3f}, {self.q_scale:.3f}"),
+            ("entropy-inclusive return G^H, mean; corr(Q, G^H)", f"{self.soft_return_mean:.3f}, {self.q_corr_soft:.3f}"),
+            ("γ·α·H(s') per transition / mean |r|", f"{self.entropy_bonus_mean:.3f} / {self.abs_reward_mean:.3f}"),
+            ("KL(π ‖ π₀) per free entity", f"{self.kl_per_entity:.2e}"),
+            ("free entities whose argmax task changed", f"{100 * self.argmax_changed:.1f} %"),
+        ]
+        head = f"{self.env}: {self.episodes} sampled and {self.episodes} deterministic episodes"
+        head += f", γ {self.gamma}, α {self.ent_coef:.4g}"
+        return "\n".join([head, "", "| figure | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)])
+
+
+def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[str, Any]:
+    """One episode of the model's two-stage decisions: observations, candidate sets, rewards and the total."""
+    policy = model.policy
+    obs, _ = env.reset(seed=seed)
+    observations, candidates, rewards = [], [], []
+    done = False
+    while not done:
+        with th.inference_mode():
+            view = policy.parse(policy.obs_to_tensor(obs)[0])
+            decision = policy.decide(view, deterministic=deterministic)
+        observations.append(obs)
+        candidates.append(decision.candidates[0].cpu().numpy())
+        obs, reward, terminated, truncated, _ = env.step(decision.env_action[0].cpu().numpy())
+        rewards.append(float(reward))
+        done = terminated or truncated
+    observations.append(obs)
+    return {"obs": observations, "candidates": candidates, "rewards": np.asarray(rewards), "terminated": terminated}
+
+
+def _discounted(values: np.ndarray, gamma: float) -> np.ndarray:
+    out = np.zeros_like(values)
+    acc = 0.0
+    for t in range(len(values) - 1, -1, -1):
+        acc = values[t] + gamma * acc
+        out[t] = acc
+    return out
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    if len(a) < 2 or a.std() == 0 or b.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def _stack(observations: list[dict[str, np.ndarray]], device: th.device) -> dict[str, th.Tensor]:
+    return {k: th.as_tensor(np.stack([o[k] for o in observations]), device=device) for k in observations[0]}
+
+
+@th.no_grad()
+def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> Diagnosis:
+    """Measure the model on ``episodes`` sampled and ``episodes`` deterministic episodes of ``env_id`` (seeds from
+    ``seed``, disjoint from training seeds by default).
+
+    :param model: a :class:`~sb3_taskalloc.TwoStageSAC`
+    """
+    policy, gamma = model.policy, float(model.gamma)
+    alpha = float(model._alpha(model.log_ent_coef, model.ent_coef_tensor).item())
+    env = gym.make(env_id)
+    sampled = [_episode(model, env, seed + k, deterministic=False) for k in range(episodes)]
+    deterministic = [_episode(model, env, seed + k, deterministic=True) for k in range(episodes)]
+    nan = float("nan")
+    figures: dict[str, float] = dict(q_mean=nan, mc_return_mean=nan, q_corr=nan, q_scale=nan, soft_return_mean=nan)
+    figures.update(q_corr_soft=nan, entropy_bonus_mean=nan, kl_per_entity=nan, argmax_changed=nan)
+    rewards = np.concatenate([e["rewards"] for e in sampled])
+    if policy.actor is not None and policy.critic is not None:
+        q, g, g_soft, bonus, kl, changed = [], [], [], [], [], []
+        for e in sampled:
+            view = policy.parse(_stack(e["obs"], model.device))
+            dist = policy.actor(view)
+            entropy = dist.entropy().sum(1).cpu().numpy()  # H(s_t) for t = 0..T
+            bonus_t = gamma * alpha * entropy[1:] * (1 - np.r_[np.zeros(len(e["rewards"]) - 1), float(e["terminated"])])
+            bonus.append(bonus_t)
+            g.append(_discounted(e["rewards"], gamma))
+            g_soft.append(_discounted(e["rewards"] + bonus_t, gamma))
+            states = policy.parse(_stack(e["obs"][:-1], model.device))
+            assign = th.as_tensor(np.stack(e["candidates"]), device=model.device).transpose(1, 2).float()
+            q.append(th.stack(policy.critic(states, assign), 0).min(0).values.cpu().numpy())
+            if policy.actor_prior is not None:
+                prior = policy.actor_prior(states)
+                pi = policy.actor(states)
+                free = states.assignable
+                kl.append((pi.kl(prior)[free]).cpu().numpy())
+                changed.append((pi.get_actions(True) != prior.get_actions(True))[free].cpu().numpy())
+        qa, ga, gsa = np.concatenate(q), np.concatenate(g), np.concatenate(g_soft)
+        figures.update(
+            q_mean=float(qa.mean()),
+            mc_return_mean=float(ga.mean()),
+            q_corr=_corr(qa, ga),
+            q_scale=float(qa @ ga / max(ga @ ga, 1e-12)),
+            soft_return_mean=float(gsa.mean()),
+            q_corr_soft=_corr(qa, gsa),
+            entropy_bonus_mean=float(np.concatenate(bonus).mean()),
+        )
+        if kl:
+            figures.update(
+                kl_per_entity=float(np.concatenate(kl).mean()), argmax_changed=float(np.concatenate(changed).mean())
+            )
+    return Diagnosis(
+        env=env_id,
+        episodes=episodes,
+        gamma=gamma,
+        ent_coef=alpha,
+        sampled_return=float(np.mean([e["rewards"].sum() for e in sampled])),
+        deterministic_return=float(np.mean([e["rewards"].sum() for e in deterministic])),
+        abs_reward_mean=float(np.abs(rewards).mean()),
+        **figures,
+    )
+
+
+def write(diagnosis: Diagnosis, out: str | Path) -> Path:
+    """``<out>/diagnose_<env>.json`` and ``.md``; :return: the Markdown path."""
+    stem = Path(out) / f"diagnose_{diagnosis.env.split('/')[-1]}"
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(asdict(diagnosis), indent=2) + "\n")
+    return atomic_write_text(stem.with_suffix(".md"), diagnosis.table() + "\n")
