@@ -90,6 +90,7 @@ class TaskAllocEnv(gym.Env):
         demand_noise: float = 0.0,
         decay: float = 1.0,
         decay_after: int = 10,
+        decay_while_committed: bool = True,
         one_step: bool = False,
         bidding: bool = False,
         bid_max: float | None = None,
@@ -116,6 +117,8 @@ class TaskAllocEnv(gym.Env):
         :param demand_noise: relative noise on open tasks' demands redrawn every step (EPT's changing peak demand)
         :param decay: factor ρ applied to the reward and the demand of tasks older than ``decay_after`` steps
         :param decay_after: age θ (steps) after which tasks decay
+        :param decay_while_committed: whether a task keeps decaying once entities are committed to it (False: only
+            tasks that nobody is travelling to or working on decay)
         :param one_step: the episode ends after the first step (Almighty)
         :param bidding: the entities' base costs are bids posted with :meth:`set_bids`
         :param bid_max: upper bound of a bid (default: 3 × the largest base cost)
@@ -148,6 +151,7 @@ class TaskAllocEnv(gym.Env):
         self.demand_noise = float(demand_noise)
         self.decay = float(decay)
         self.decay_after = int(decay_after)
+        self.decay_while_committed = bool(decay_while_committed)
         self.one_step = one_step
         self.bidding = bidding
         self.bid_max = float(bid_max) if bid_max is not None else float(3.0 * max(entities.cost.max(), 1.0))
@@ -414,7 +418,10 @@ class TaskAllocEnv(gym.Env):
         # Decay (reward and demand × ρ once older than θ; positions untouched) and changing demand.
         self._age += self._occupied
         if self.decay < 1.0:
-            factor = np.where(self._age > self.decay_after, self.decay, 1.0)
+            decaying = self._age > self.decay_after
+            if not self.decay_while_committed:
+                decaying &= np.bincount(self._assigned[self._assigned >= 0], minlength=M) == 0
+            factor = np.where(decaying, self.decay, 1.0)
             self._reward *= factor
             self._base_demand *= factor[:, None]
         if self.demand_noise > 0:
