@@ -387,3 +387,23 @@ def test_save_gif_takes_models_and_allocators(tmp_path):
     assert greedy_return == fn_return and (tmp_path / "greedy.gif").stat().st_size > 0
     with pytest.raises(TypeError, match="have predict"):
         save_gif(env, 42, tmp_path / "x.gif")
+
+
+@pytest.mark.parametrize("while_committed", [True, False])
+def test_decay_of_committed_tasks(while_committed):
+    """With ``decay_while_committed=False`` (MT's default) a task that a truck is driving to keeps its reward; a task
+    nobody serves keeps decaying either way."""
+    from envs import EntityTable, TaskAllocEnv, TaskTable
+
+    ents = EntityTable(cost=[1.0, 1.0], supply=[[1.0], [1.0]], positions=[[0, 0], [0, 0]])
+    tasks = TaskTable(rows=[[8.0, 1.0], [8.0, 1.0]], positions=[[9, 9], [9, 9]])
+    env = TaskAllocEnv(
+        ents, tasks, max_tasks=2, grid_size=10, travel="chebyshev", arrival="static", decay=0.5, decay_after=0,
+        decay_while_committed=while_committed,
+    )  # fmt: skip
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        obs, *_ = env.step(np.array([0, 2]) if obs["entity_mask"][0] else np.array([2, 2]))
+    assert obs["task_reward"][1] == pytest.approx(8.0 * 0.5**3)  # nobody serves task 1
+    assert obs["task_reward"][0] == pytest.approx(8.0 * 0.5**3 if while_committed else 8.0)
+    assert gym.make("TaskAlloc/MT-v0").unwrapped.decay_while_committed is False

@@ -5,10 +5,12 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import asdict, dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 #: Planner settings of the ``local`` and ``smoke`` budgets (rollouts per re-plan are what makes them slow).
 PLANNER_BUDGET: dict[str, Any] = {"population": 20, "budget": 100}
@@ -146,9 +148,20 @@ def config_key(*parts: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
 
+@cache
 def env_settings(env_id: str | None) -> dict[str, Any] | None:
-    """The registered keywords and episode length of ``env_id`` (part of a result's configuration)."""
+    """What defines the env of ``env_id`` (part of a result's configuration): its registration, the settings the built
+    env reports (so a changed class default counts too) and a digest of its entity and task tables."""
     if env_id is None:
         return None
     spec = gym.spec(env_id)
-    return {"id": env_id, "kwargs": spec.kwargs, "max_episode_steps": spec.max_episode_steps}
+    env = gym.make(env_id).unwrapped
+    settings = {k: v for k, v in vars(env).items() if not k.startswith("_") and isinstance(v, int | float | str | tuple)}
+    tables = hashlib.sha256()
+    for table in (getattr(env, "entities", None), getattr(env, "tasks", None)):
+        for value in vars(table).values() if table is not None else ():
+            if value is not None:
+                tables.update(np.ascontiguousarray(value).tobytes())
+    env.close()
+    return {"id": env_id, "kwargs": spec.kwargs, "max_episode_steps": spec.max_episode_steps, "settings": settings,
+            "tables": tables.hexdigest()[:16]}  # fmt: skip
