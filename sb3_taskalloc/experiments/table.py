@@ -180,6 +180,10 @@ class TableRun:
             key = config_key(self._train_settings(method, row))
         return self.folder / "models" / f"{_slug(method)}_s{seed}_{_slug(row)}_{key}.zip"
 
+    def _log_path(self, method: str, seed: int, row: str = "train") -> Path:
+        """The Monitor log of training a model: named like the model, so logs of other settings are kept apart."""
+        return self.folder / "logs" / f"{self._model_path(method, seed, row).stem}.monitor.csv"
+
     @staticmethod
     def _save(model: Any, path: Path) -> None:
         with atomic_path(path) as tmp:
@@ -224,8 +228,7 @@ class TableRun:
         path = self._model_path(name, seed, row)
         if path.exists():
             return self._load(method, path)
-        suffix = "" if row == "train" else f"_{_slug(row)}"
-        model = self._new_model(method, env_id, seed, self.folder / "logs" / f"{_slug(name)}_s{seed}{suffix}.monitor.csv")
+        model = self._new_model(method, env_id, seed, self._log_path(name, seed, row))
         model.learn(self.budget.steps(self.env, self.budget.train_episodes))
         self._save(model, path)
         return model
@@ -266,7 +269,7 @@ class TableRun:
                 model.set_env(target)  # the TAM policy adopts the preset's entity/task counts
             return f"{evaluate(model, env_id, budget, seed, method):.6g}"
         path = self._model_path(name, seed, row)
-        log = self.folder / "logs" / f"{_slug(name)}_s{seed}_{_slug(row)}.monitor.csv"
+        log = self._log_path(name, seed, row)
         if path.exists():
             tuned = self._load(method, path)
         else:
@@ -391,7 +394,7 @@ class TableRun:
         for name in self.methods:
             runs = []
             for seed in range(self.seeds):
-                log = self.folder / "logs" / f"{_slug(name)}_s{seed}.monitor.csv"
+                log = self._log_path(name, seed)
                 if log.exists():
                     rows = log.read_text().strip().splitlines()[2:]  # Monitor: a JSON line, then the header
                     runs.append(np.array([float(r.split(",")[0]) for r in rows]))
