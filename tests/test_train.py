@@ -436,3 +436,30 @@ def test_foreach_polyak_update_equals_sb3():
         th.testing.assert_close(a, b, rtol=0, atol=0)
     with pytest.raises(ValueError, match="target parameters"):
         foreach_polyak_update(params, ours[:1], 0.005)
+
+
+def test_mean_entropy_bonus_in_target_and_actor(model):
+    """``entropy_bonus="mean"``: the target and the actor loss use α·H̄(s), the entropy per free entity, instead of
+    α·Σ_i H_i(s); the two differ exactly by the entropy term."""
+    data = model.replay_buffer.sample(16)
+    view, next_view = parse_obs(data.observations), parse_obs(data.next_observations)
+    alpha = th.tensor(0.3)
+    not_done = th.zeros_like(data.dones[:, 0])  # Almighty ends every episode: bootstrap anyway to see the bonus
+    args = (model.actor, model.critic, model.critic_target, view, next_view, data.rewards[:, 0], not_done)
+    total = losses.preassign_critic_loss(*args, data.candidates, model.gamma, alpha)
+    mean = losses.preassign_critic_loss(*args, data.candidates, model.gamma, alpha, entropy_per_entity=True)
+    with th.no_grad():
+        h = model.actor(next_view).entropy().sum(1)
+    n_free = next_view.assignable.sum(1).clamp_min(1)
+    discount = model.gamma
+    th.testing.assert_close(total.target_q - mean.target_q, discount * alpha * (h - h / n_free), atol=1e-5, rtol=1e-5)
+    assert (n_free > 1).any() and (total.target_q != mean.target_q).any()
+    dist = model.actor(view)
+    contexts = model.critic.contexts(view)
+    plain = losses.preassign_actor_loss(dist, model.critic, contexts, view, alpha)
+    per = losses.preassign_actor_loss(dist, model.critic, contexts, view, alpha, entropy_per_entity=True)
+    h_now = dist.entropy().sum(1)
+    expected = (-alpha * h_now / view.assignable.sum(1).clamp_min(1) + alpha * h_now).mean()
+    th.testing.assert_close(per - plain, expected, atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="entropy_bonus"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", entropy_bonus="max")

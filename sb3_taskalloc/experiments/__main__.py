@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> None:
     diag.add_argument("--episodes", type=int, default=3, help="sampled and deterministic evaluation episodes each")
     diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
     diag.add_argument("--out", default="results/diagnose")
+    diag.add_argument("--algo-kwargs", type=_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"')
     args = parser.parse_args(argv)
 
     import torch as th
@@ -65,6 +66,15 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {path}, {path.with_suffix('.csv')}")
 
 
+def _mapping(text: str) -> dict:
+    import yaml
+
+    value = yaml.safe_load(text)
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a YAML mapping, got {text!r}")
+    return value
+
+
 def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
@@ -76,7 +86,8 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
     if args.model:
         model = TwoStageSAC.load(args.model, device="cpu")
     else:
-        model = TwoStageSAC("TAMPolicy", env_id, seed=args.seed, device="cpu", **zoo_hyperparameters(env_id))
+        kwargs = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
+        model = TwoStageSAC("TAMPolicy", env_id, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)
     path = write(diagnose(model, env_id, args.episodes), args.out)

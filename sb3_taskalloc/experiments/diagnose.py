@@ -24,6 +24,7 @@ import numpy as np
 import torch as th
 
 from sb3_taskalloc.common.utils import atomic_write_text
+from sb3_taskalloc.two_stage_sac.losses import state_entropy
 
 
 @dataclass
@@ -123,7 +124,8 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         for e in sampled:
             view = policy.parse(_stack(e["obs"], model.device))
             dist = policy.actor(view)
-            entropy = dist.entropy().sum(1).cpu().numpy()  # H(s_t) for t = 0..T
+            per_entity = getattr(model, "entropy_bonus", "sum") == "mean"
+            entropy = state_entropy(dist, view, per_entity).cpu().numpy()  # the bonus's H(s_t) for t = 0..T
             bonus_t = gamma * alpha * entropy[1:] * (1 - np.r_[np.zeros(len(e["rewards"]) - 1), float(e["terminated"])])
             bonus.append(bonus_t)
             g.append(_discounted(e["rewards"], gamma))

@@ -38,6 +38,16 @@ def frozen(module: nn.Module) -> Iterator[None]:
 # ---------------------------------------------------------------------------------------------- stage 1: pre-assign
 
 
+def state_entropy(dist: MaskedCategorical, view: ObsView, per_entity: bool = False) -> th.Tensor:
+    """(B,) the entropy bonus of a state: H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised
+    policy, the paper's), or with ``per_entity`` its mean over the free entities, which does not grow with their number.
+    """
+    total = dist.entropy().sum(1)
+    if not per_entity:
+        return total
+    return total / view.assignable.sum(1).clamp_min(1)
+
+
 class PreAssignCriticLoss(NamedTuple):
     loss: th.Tensor  # ½ Σ_k MSE(Q^k_tot(s, c), y)
     target_q: th.Tensor  # (B,) y
@@ -55,6 +65,7 @@ def preassign_critic_loss(
     candidates: th.Tensor,
     gamma: float,
     alpha: th.Tensor,
+    entropy_per_entity: bool = False,
 ) -> PreAssignCriticLoss:
     """The paper's L_critic(φ) in its soft form (implementation details 2–3):
     y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], H(s) = Σ_i H(π_i(·|s)), and the
@@ -63,11 +74,12 @@ def preassign_critic_loss(
     :param rewards: (B,) env rewards; :param dones: (B,) 1 where s' is terminal (not truncated)
     :param candidates: (B, M, N) the stored candidate sets (the one-hot c)
     :param alpha: the temperature α (a constant of this loss)
+    :param entropy_per_entity: the bonus is the mean per-entity entropy instead of the sum (:func:`state_entropy`)
     """
     with th.no_grad():
         next_dist = actor(next_view)
         next_q = th.stack(critic_target(next_view, next_dist.probs), dim=0).min(0).values
-        next_v = next_q + alpha * next_dist.entropy().sum(1)
+        next_v = next_q + alpha * state_entropy(next_dist, next_view, entropy_per_entity)
         target_q = rewards + (1 - dones) * gamma * next_v
     assign = candidates.transpose(1, 2).float()  # one-hot c: (B, N, M)
     contexts = critic.contexts(view)
@@ -98,6 +110,7 @@ def preassign_actor_loss(
     alpha: th.Tensor,
     prior: PreAssignActor | None = None,
     prior_coef: float = 0.0,
+    entropy_per_entity: bool = False,
 ) -> th.Tensor:
     """The paper's L_actor(θ) with the true entropy and the expectation over actions (implementation detail 3): mean over
     the batch of −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)), plus β Σ_i KL(π_i ‖ π₀_i) with a prior
@@ -109,10 +122,11 @@ def preassign_actor_loss(
     :param dist: the actor's distribution on ``view``
     :param contexts: the critics' contexts on ``view`` (:meth:`~TwinCritic.contexts`)
     :param prior: the frozen initial actor π₀; :param prior_coef: β
+    :param entropy_per_entity: the bonus is the mean per-entity entropy, as in the critic's target
     """
     with frozen(critic):
         q_pi = th.stack(critic.mix([ctx.detach() for ctx in contexts], dist.probs), dim=0).min(0).values
-    loss = -alpha * dist.entropy().sum(1) - q_pi
+    loss = -alpha * state_entropy(dist, view, entropy_per_entity) - q_pi
     if prior_coef > 0 and prior is not None:
         with th.no_grad():
             prior_dist = prior(view)

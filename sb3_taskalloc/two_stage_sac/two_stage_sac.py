@@ -6,7 +6,7 @@ import io
 import math
 import pathlib
 from collections import defaultdict
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
 import torch as th
@@ -48,7 +48,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
        hypernetwork over the free entities and a state-dependent hyper-bias b. Target copies updated by Polyak
        averaging (τ).
     2. Stage-1 target: y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], with
-       H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised policy). The env reward is the
+       H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised policy; ``entropy_bonus="mean"``:
+       its mean over the free entities, which does not grow with their number). The env reward is the
        learning signal (the published code regressed internal select returns instead).
     3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
        (the paper's L_actor and L_critic with the true entropy and the expectation over actions, as in discrete SAC).
@@ -112,6 +113,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param ent_coef: stage-1 entropy coefficient α: ``"auto"``, ``"auto_0.1"`` (auto with initial value) or a float
     :param select_ent_coef: select-stage entropy coefficient α_s (same forms)
     :param target_entropy_ratio: H̄* as a fraction of the maximum per-entity (or per-pick) entropy
+    :param entropy_bonus: the stage-1 entropy term of the target and the actor loss: ``"sum"`` over the free entities
+        (the joint entropy, the paper's) or their ``"mean"`` (implementation detail 2)
     :param actor_warmup: gradient steps during which only the critics learn: the pre-assign actor, the pointer and
         both temperatures keep their initial values (with ``heuristic_init``, the critics first learn the values of the
         cost-greedy rules before the actors follow them)
@@ -157,6 +160,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         ent_coef: str | float = "auto",
         select_ent_coef: str | float = "auto",
         target_entropy_ratio: float = 0.3,
+        entropy_bonus: Literal["sum", "mean"] = "sum",
         actor_warmup: int = 0,
         prior_coef: float = 10.0,
         select_prior_coef: float = 3.0,
@@ -202,6 +206,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.ent_coef = ent_coef
         self.select_ent_coef = select_ent_coef
         self.target_entropy_ratio = target_entropy_ratio
+        if entropy_bonus not in ("sum", "mean"):
+            raise ValueError(f"entropy_bonus must be 'sum' or 'mean', got {entropy_bonus!r}")
+        self.entropy_bonus = entropy_bonus
         if actor_warmup < 0:
             raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
         self.actor_warmup = actor_warmup
@@ -315,6 +322,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     replay_data.candidates,
                     self.gamma,
                     alpha,
+                    self.entropy_bonus == "mean",
                 )
                 logs["critic_loss"].append(critic.loss.item())
                 if not actors_learn:
@@ -329,7 +337,14 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                             logs["ent_coef_loss"].append(self._step(self.ent_coef_optimizer, ent_loss))
                     # Actor: L_actor(θ) on the same critic values as the critic loss (detail 3), + β KL(π ‖ π₀) (detail 12).
                     actor_loss = losses.preassign_actor_loss(
-                        dist, self.critic, critic.contexts, obs, alpha, self.policy.actor_prior, self.prior_coef
+                        dist,
+                        self.critic,
+                        critic.contexts,
+                        obs,
+                        alpha,
+                        self.policy.actor_prior,
+                        self.prior_coef,
+                        self.entropy_bonus == "mean",
                     )
                     logs["actor_loss"].append(actor_loss.item())
                     # Disjoint parameters: one backward pass gives each network its own gradient.
