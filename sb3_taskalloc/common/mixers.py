@@ -105,22 +105,13 @@ class AMIXMixer(nn.Module):
 
 
 class GlobalMixer(FlatNet):
-    """The "W/o AMIX" ablation: one MLP over flattened tasks, entities and the (one-hot or expected) assignment.
-
-    :param n_entities: padded entity count N
-    :param n_tasks: padded task count M
-    :param entity_dim: entity feature size
-    :param task_dim: task feature size
-    :param hidden_dim: hidden width
-    :param activation_fn: activation
-    """
+    """The "W/o AMIX" ablation: one MLP over flattened tasks, entities and the (one-hot or expected) assignment → Q_tot."""
 
     name = 'mixer="global"'
 
-    def __init__(
-        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
-    ) -> None:
-        super().__init__(n_entities, n_tasks, entity_dim, task_dim, 1, hidden_dim, activation_fn)
+    @staticmethod
+    def outputs(n_entities: int, n_tasks: int) -> int:
+        return 1
 
     def forward(self, assign: th.Tensor, view: ObsView) -> th.Tensor:
         """:param assign: (B, N, M) one-hot pre-assignment or assignment probabilities; :return: (B,)"""

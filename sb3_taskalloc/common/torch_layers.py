@@ -284,18 +284,37 @@ class PairScorer(nn.Module):
 
 
 class FlatNet(nn.Module):
-    """MLP over flattened padded entities, tasks and one (N, M) pair tensor: the size-specific ablations."""
+    """MLP over flattened padded entities, tasks and one (N, M) pair tensor: the size-specific ablations. Subclasses set
+    :meth:`outputs`, the width of the MLP's output for N entities and M tasks.
+
+    :param n_entities: padded entity count N
+    :param n_tasks: padded task count M
+    :param entity_dim: entity feature size
+    :param task_dim: task feature size
+    :param hidden_dim: hidden width
+    :param activation_fn: activation
+    """
 
     size_agnostic = False
     name = ""
 
+    @staticmethod
+    def outputs(n_entities: int, n_tasks: int) -> int:
+        raise NotImplementedError
+
     def __init__(
-        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, out_dim: int, hidden_dim: int, activation_fn
+        self,
+        n_entities: int,
+        n_tasks: int,
+        entity_dim: int,
+        task_dim: int,
+        hidden_dim: int = 64,
+        activation_fn: type[nn.Module] = nn.ReLU,
     ) -> None:
         super().__init__()
         self.n_entities, self.n_tasks = n_entities, n_tasks
         in_dim = n_entities * entity_dim + n_tasks * task_dim + n_entities * n_tasks
-        self.net = mlp(in_dim, hidden_dim, out_dim, activation_fn)
+        self.net = mlp(in_dim, hidden_dim, self.outputs(n_entities, n_tasks), activation_fn)
 
     def flat_forward(self, view: ObsView, pair: th.Tensor) -> th.Tensor:
         N, M = pair.shape[1:]
@@ -308,22 +327,13 @@ class FlatNet(nn.Module):
 
 
 class FlatScorer(FlatNet):
-    """The "W/o TAM" ablation: one MLP over the flattened padded inputs (and symlog pair costs) → N·M scores.
-
-    :param n_entities: padded entity count N
-    :param n_tasks: padded task count M
-    :param entity_dim: entity feature size
-    :param task_dim: task feature size
-    :param hidden_dim: hidden width
-    :param activation_fn: activation
-    """
+    """The "W/o TAM" ablation: one MLP over the flattened padded inputs (and symlog pair costs) → N·M scores."""
 
     name = 'encoder="mlp"'
 
-    def __init__(
-        self, n_entities: int, n_tasks: int, entity_dim: int, task_dim: int, hidden_dim: int = 64, activation_fn=nn.ReLU
-    ) -> None:
-        super().__init__(n_entities, n_tasks, entity_dim, task_dim, n_entities * n_tasks, hidden_dim, activation_fn)
+    @staticmethod
+    def outputs(n_entities: int, n_tasks: int) -> int:
+        return n_entities * n_tasks
 
     def forward(self, view: ObsView) -> th.Tensor:
         return self.flat_forward(view, symlog(view.pair_cost)).view(-1, self.n_entities, self.n_tasks)
