@@ -206,3 +206,17 @@ def test_diagnose_measures_calibration_and_drift(tmp_path):
         "TAMPolicy", "TaskAlloc/EPT-v0", seed=0, device="cpu", policy_kwargs={"preassign": False, "hidden_dim": 16}
     )
     assert np.isnan(diagnose(no_pre, "TaskAlloc/EPT-v0", episodes=1).q_corr)  # no stage-1 critic to read
+
+
+def test_resume_over_a_broken_model_file(tmp_path, capsys):
+    """A model file cut short (a crash outside the runner) does not stop the resume: it is kept aside and the model is
+    trained again."""
+    run = TableRun("Almighty", 1, "smoke", tmp_path, methods=["Ours"], progress=False)
+    path = run._model_path("Ours", 0)
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"PK\x03\x04 cut short")
+    run.run()
+    assert run.done()[("Ours", "train", 0)] != "" and path.exists()
+    broken = list(path.parent.glob("*.broken-*.zip"))
+    assert len(broken) == 1 and broken[0].read_bytes() == b"PK\x03\x04 cut short"
+    assert "could not be loaded" in capsys.readouterr().out

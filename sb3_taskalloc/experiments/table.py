@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import time
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -220,14 +222,28 @@ class TableRun:
 
         return TwoStageSAC.load(path, env=env)
 
+    def _load_saved(self, method: Method, path: Path) -> Any:
+        """The model saved at ``path``, or None when there is none. A file that cannot be loaded (cut short by a crash
+        outside this runner, say) is moved to ``<name>.broken-<time>.zip``, kept, and the model is trained again."""
+        if not path.exists():
+            return None
+        try:
+            return self._load(method, path)
+        except (ValueError, zipfile.BadZipFile, EOFError, KeyError) as error:
+            aside = path.with_name(f"{path.stem}.broken-{time.strftime('%Y%m%d-%H%M%S')}.zip")
+            os.replace(path, aside)
+            print(f"warning: {path} could not be loaded ({error}); moved it to {aside} and computing it again")
+            return None
+
     def trained(self, name: str, seed: int, row: str = "train") -> Any:
         """The model of ``name`` trained from scratch on the env of ``row`` (the train env, or a preset for the
         "from scratch" rows) with the training budget and the train env's hyperparameters (loaded when saved before)."""
         method, env_id = METHODS[name], row_env(self.env, row)
         assert env_id is not None
         path = self._model_path(name, seed, row)
-        if path.exists():
-            return self._load(method, path)
+        saved = self._load_saved(method, path)
+        if saved is not None:
+            return saved
         model = self._new_model(method, env_id, seed, self._log_path(name, seed, row))
         model.learn(self.budget.steps(self.env, self.budget.train_episodes))
         self._save(model, path)
@@ -270,9 +286,8 @@ class TableRun:
             return f"{evaluate(model, env_id, budget, seed, method):.6g}"
         path = self._model_path(name, seed, row)
         log = self._log_path(name, seed, row)
-        if path.exists():
-            tuned = self._load(method, path)
-        else:
+        tuned = self._load_saved(method, path)
+        if tuned is None:
             tuned = self._load(method, self._model_path(name, seed), env_id, log)
             tuned.learn(self.budget.steps(self.env, self.budget.few_shot_episodes), reset_num_timesteps=False)
             self._save(tuned, path)
