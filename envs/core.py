@@ -286,13 +286,7 @@ class TaskAllocEnv(gym.Env):
                 self._pc = np.repeat(base[:, None], self.max_tasks, axis=1)
             # Observation pieces that only change with the geometry (padded rows and empty slots are zero).
             self._pc_obs = (self._pc * (self._present0[:, None] & self._occupied[None, :])).astype(np.float32)
-            lay = self.layout
-            ef = np.zeros((self.max_entities, lay.n_entity_features), dtype=np.float32)
-            ef[:, lay.cost] = base * self._alive
-            ef[:, lay.supply] = self._supply
-            ef[:, lay.position] = self._pos
-            ef[:, lay.bid] = self._bid
-            self._ef_static = ef
+            self._ef_static = self.layout.entity_features(base * self._alive, self._supply, self._pos, self._bid)
             self._geom_dirty = False
         self._rem = rem
         self._free = free
@@ -309,13 +303,7 @@ class TaskAllocEnv(gym.Env):
         """Flat (N·(M+1),) boolean mask in sb3-contrib's MultiDiscrete layout (used by MaskablePPO)."""
         if not self._state_ready:
             raise RuntimeError("call reset() before action_masks()")
-        return self._action_mask(self._free, self._open).astype(bool)
-
-    def _action_mask(self, entity_mask: np.ndarray, task_mask: np.ndarray) -> np.ndarray:
-        m = np.empty((self.max_entities, self.max_tasks + 1), dtype=bool)
-        np.multiply.outer(entity_mask, task_mask, out=m[:, : self.max_tasks])
-        m[:, self.max_tasks] = True
-        return m.reshape(-1).view(np.int8)
+        return self.layout.action_mask(self._free, self._open).astype(bool)
 
     def _obs(self) -> dict[str, np.ndarray]:
         # Padded entities and empty slots hold zeros in every state array, so no masking is needed here.
@@ -326,22 +314,8 @@ class TaskAllocEnv(gym.Env):
             ef[:, lay.busy] = (self._dist[self._entity_index, self._assigned] + 1.0) * self._committed
         else:
             ef[:, lay.busy] = self._committed
-        tf = np.empty((self.max_tasks, lay.n_task_features), dtype=np.float32)
-        tf[:, lay.reward] = self._reward
-        tf[:, lay.demand] = self._rem
-        tf[:, lay.task_position] = self._tpos
-        tf[:, lay.age] = self._age
-        return {
-            "entity_features": ef,
-            "task_features": tf,
-            "entity_supply": ef[:, lay.supply].copy(),
-            "task_demand": tf[:, lay.demand].copy(),
-            "task_reward": tf[:, lay.reward].copy(),
-            "pair_cost": self._pc_obs.copy(),
-            "entity_mask": self._free.astype(np.int8),
-            "task_mask": self._open.astype(np.int8),
-            "action_mask": self._action_mask(self._free, self._open),
-        }
+        tf = lay.task_features(self._reward, self._rem, self._tpos, self._age)
+        return lay.observation(ef, tf, self._pc_obs.copy(), self._free, self._open)
 
     def _info(self, completed: int, rewards: float, costs: float, invalid: int, income: np.ndarray) -> dict[str, Any]:
         return {

@@ -88,3 +88,46 @@ class ObsLayout:
                 "action_mask": spaces.MultiBinary(N * (M + 1)),
             }
         )
+
+    def entity_features(self, cost: np.ndarray, supply: np.ndarray, position: np.ndarray, bid: np.ndarray) -> np.ndarray:
+        """(N, K + 5) float32 ``entity_features`` with the busy column at 0 (the env fills it every step)."""
+        ef = np.zeros((len(cost), self.n_entity_features), dtype=np.float32)
+        ef[:, self.cost] = cost
+        ef[:, self.supply] = supply
+        ef[:, self.position] = position
+        ef[:, self.bid] = bid
+        return ef
+
+    def task_features(self, reward: np.ndarray, remaining: np.ndarray, position: np.ndarray, age: np.ndarray) -> np.ndarray:
+        """(M, K + 4) float32 ``task_features``."""
+        tf = np.empty((len(reward), self.n_task_features), dtype=np.float32)
+        tf[:, self.reward] = reward
+        tf[:, self.demand] = remaining
+        tf[:, self.task_position] = position
+        tf[:, self.age] = age
+        return tf
+
+    @staticmethod
+    def action_mask(entity_mask: np.ndarray, task_mask: np.ndarray) -> np.ndarray:
+        """(N·(M+1),) int8 mask in sb3-contrib's MultiDiscrete layout: per entity, M task choices then "unassigned"."""
+        N, M = len(entity_mask), len(task_mask)
+        m = np.empty((N, M + 1), dtype=bool)
+        np.multiply.outer(entity_mask, task_mask, out=m[:, :M])
+        m[:, M] = True
+        return m.reshape(-1).view(np.int8)
+
+    def observation(
+        self, ef: np.ndarray, tf: np.ndarray, pair_cost: np.ndarray, entity_mask: np.ndarray, task_mask: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """The observation dict from the feature matrices, pair costs and masks (the other keys are their columns)."""
+        return {
+            "entity_features": ef,
+            "task_features": tf,
+            "entity_supply": ef[:, self.supply].copy(),
+            "task_demand": tf[:, self.demand].copy(),
+            "task_reward": tf[:, self.reward].copy(),
+            "pair_cost": pair_cost,
+            "entity_mask": entity_mask.astype(np.int8),
+            "task_mask": task_mask.astype(np.int8),
+            "action_mask": self.action_mask(entity_mask, task_mask),
+        }

@@ -1,5 +1,5 @@
 """Losses of TwoStageSAC, one function per term (implementation details 2–5 and 12 of
-:class:`~sb3_taskalloc.TwoStageSAC`).
+:mod:`sb3_taskalloc.two_stage_sac`).
 
 Every function takes the networks and tensors it needs and returns tensors: none reads the algorithm's state. Both
 prior terms come the same way: the frozen initial actor (``prior``) and its weight (``prior_coef``), the term being

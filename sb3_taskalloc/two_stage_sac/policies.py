@@ -20,10 +20,10 @@ from sb3_taskalloc.common.policies import AMIXCritic, GlobalCritic, PreAssignAct
 from sb3_taskalloc.common.torch_layers import PAIR_COST, UNIT_COST, FlatScorer, ObsView, PairScorer, PointerHead, parse_obs
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of
 
-#: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of TwoStageSAC): the pre-assign
-#: actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight on the symlog
-#: unit cost (a task picks the candidate that covers its remaining demand at the lowest cost per unit, the greedy
-#: allocator's rule), and the gain of the last layer of the task embeddings whose dot products add to both scores.
+#: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
+#: the pre-assign actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight
+#: on the symlog unit cost (a task picks the candidate that covers its remaining demand at the lowest cost per unit, the
+#: greedy allocator's rule), and the gain of the last layer of the task embeddings whose dot products add to both scores.
 HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embedding_gain": 0.0}
 
 #: Keys of the observation that TAMPolicy reads (the ``TaskAlloc`` observation layout).

@@ -41,62 +41,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     a pointer head picks candidates one by one until the task's demand is covered; a task whose internal profit
     (reward if covered − Σ pair costs) is ≤ 0 is abandoned.
 
-    Implementation details (equations; deviations from the paper and the published code):
-
-    1. Stage-1 critics: Q^k_i(s, j) = o_i·q_j (+ a learned term of the pair cost, coverage and margin), k = 1, 2, mixed
-       by AMIX: Q^k_tot(s, c) = MLP(ReLU(Σ_i Q^k_i(s, c_i) w_i + b)), with hyper-weights w_i from a self-attention
-       hypernetwork over the free entities and a state-dependent hyper-bias b. Target copies updated by Polyak
-       averaging (τ).
-    2. Stage-1 target: y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], with
-       H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised policy; ``entropy_bonus="mean"``:
-       its mean over the free entities, which does not grow with their number). The env reward is the
-       learning signal (the published code regressed internal select returns instead).
-    3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
-       (the paper's L_actor and L_critic with the true entropy and the expectation over actions, as in discrete SAC).
-       Both losses use the same critic values, computed once before either network steps (as in the original SAC
-       code): the actor loss reuses the critics' scores and AMIX context, detached, with the critics frozen, so its
-       backward pass never runs through the critic networks.
-    4. α auto-tuned (``ent_coef="auto"``): loss log α·(H̄(s) − H̄*), H̄ = mean per-entity entropy,
-       H̄* = ``target_entropy_ratio`` × mean_i log(#valid tasks of i); or fixed (paper: 0.05).
-    5. Select stage: a short MDP per task computed from the observation (state = remaining demand and picked set;
-       action = pick; reward = −pair cost, + the task reward on covering; γ = 1 within a task), trained by discrete
-       SAC: Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})];
-       actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)]. Transitions are re-derived from the stored
-       (observation, candidate sets, pick order); TD targets are detached and use the target critic. Two exact
-       prunings (pair costs are non-negative): a candidate that covers none of the remaining demand is not a choice
-       (it could only add cost), and a task's decoding stops as soon as it can no longer be kept (``still_winnable``):
-       it would be abandoned anyway. See :mod:`~sb3_taskalloc.two_stage_sac.select_stage`.
-    6. Pointer: logits u_i = d_i·e_j^t/√d + w·x_i^t, a dot-product pointer instead of the paper's additive
-       vᵀ tanh(W1 e_j^t + W2 d_i) (same inputs, no batch × entities × hidden tensor per step);
-       e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
-       T^{t+1} = T^t + f^a(u^t)); x_i^t = a fixed basis of the entity's coverage of that demand, pair cost, margin,
-       waste and unit cost (pair cost per unit of remaining demand covered), weighed linearly. The select critics
-       add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
-    7. Scores are divided by √d in the actor (paper) and not in the critics. Inputs are symlog-normalised.
-    8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks.
-    9. Ablations are policy kwargs: ``preassign=False, task_order="sequential"|"random"`` (W/o Pre),
-       ``encoder="mlp"`` (W/o TAM), ``mixer="global"`` (W/o AMIX): each names a component of the policy. Without
-       pre-assignment, abandoned picks return to the pool.
-    10. Initialisation (``TAMPolicy(heuristic_init=True)``, not in the paper): the actors start at cost-greedy rules.
-       The pre-assign read-out weighs only the symlog pair cost (each entity leans to its cheapest task), the
-       pointer's only the symlog unit cost (each task picks the candidate that covers its remaining demand at the
-       lowest cost per unit, the rule of :class:`~sb3_taskalloc.baselines.GreedyAllocator`), and the last layer of
-       both task embeddings starts at 0, so the dot-product terms start at 0 and grow by learning. Critics keep
-       PyTorch's initialisation. ``heuristic_init=False`` is the paper's random start.
-    11. Critic warm-up (``actor_warmup``): the first gradient steps train only the critics, so the actors start
-       learning from critics that have seen the values of their initial rules.
-    12. Prior term (``prior_coef`` β, ``select_prior_coef`` β_s; not in the paper): each actor loss adds
-       β·KL(π ‖ π₀), π₀ = the actor at initialisation (frozen copies ``actor_prior``/``selector_prior`` in the
-       policy), as a behaviour prior (the regularised optimum is π ∝ π₀·exp(Q/β) where the entropy term is small).
-       The critics' targets keep the entropy bonus of details 2 and 5. With ``heuristic_init`` the actors then
-       leave the cost-greedy rules only where the critics' values outweigh the KL, instead of following the noisy
-       early critics away from them. The rule-initialised π₀ has
-       task embeddings that are identically 0, so its scores are computed without its dot products (``freeze``).
-    13. Updates: Adam is fused by default (``TAMPolicy._make_optimizer``) and the soft target updates are one
-       multi-tensor operation each (:func:`foreach_polyak_update`, SB3's arithmetic): faster, same updates. The TAM
-       dot products apply the entity MLP's last layer to the task embeddings instead, h_i·g_j = z_i·(Wᵀg_j) + b·g_j
-       (``TAMEncoder.dot``), and the layers that read the raw features reorder their weight-gradient product
-       (``NarrowLinear``): the same values and gradients up to rounding, at less cost on a CPU.
+    Every equation, and every deviation from the paper and from the published code, is an implementation detail of
+    the package (:mod:`sb3_taskalloc.two_stage_sac`); the comments below cite them by number.
 
     :param policy: ``"TAMPolicy"`` or a :class:`TAMPolicy` subclass
     :param env: a ``TaskAlloc`` environment (or its id)
