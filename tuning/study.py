@@ -223,7 +223,7 @@ def recover_stale_trials(study: optuna.Study, grace_period: float) -> list[int]:
         start = trial.datetime_start.timestamp() if trial.datetime_start is not None else now
         if now - float(trial.user_attrs.get("heartbeat", start)) <= grace_period:
             continue
-        study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)  # no public API fails another's trial
+        study.tell(trial.number, state=TrialState.FAIL)  # by number: the trial was started by another (dead) worker
         study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
         failed.append(trial.number)
     return failed
@@ -313,7 +313,7 @@ def open_study(args: argparse.Namespace) -> optuna.Study:
 def run_worker(args: argparse.Namespace) -> optuna.Study:
     """Run trials until the study holds ``args.n_trials`` finished trials; :return: the study."""
     study = open_study(args)
-    journal = isinstance(study._storage, optuna.storages.JournalStorage)
+    journal = args.storage is None or "://" not in args.storage
     if journal:
         recovered = recover_stale_trials(study, args.heartbeat_grace)
         if recovered:

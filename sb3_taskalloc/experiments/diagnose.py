@@ -111,7 +111,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
     :param model: a :class:`~sb3_taskalloc.TwoStageSAC`
     """
     policy, gamma = model.policy, float(model.gamma)
-    alpha = float(model._alpha(model.log_ent_coef, model.ent_coef_tensor).item())
+    alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())
     env = gym.make(env_id)
     sampled = [_episode(model, env, seed + k, deterministic=False) for k in range(episodes)]
     deterministic = [_episode(model, env, seed + k, deterministic=True) for k in range(episodes)]
