@@ -220,3 +220,35 @@ def test_resume_over_a_broken_model_file(tmp_path, capsys):
     broken = list(path.parent.glob("*.broken-*.zip"))
     assert len(broken) == 1 and broken[0].read_bytes() == b"PK\x03\x04 cut short"
     assert "could not be loaded" in capsys.readouterr().out
+
+
+def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch):
+    """The learning experiment evaluates every column on the same held-out episodes per seed, writes per-seed and
+    summary files, and a second run reads the finished seeds back instead of training again."""
+    import json
+
+    from sb3_taskalloc.experiments import learn
+
+    kwargs = {"learning_starts": 5, "batch_size": 8, "policy_kwargs": {"hidden_dim": 16}}
+    run = learn.LearnRun(
+        "EPT",
+        seeds=2,
+        steps=10,
+        eval_episodes=2,
+        eval_every=5,
+        algo_kwargs=kwargs,
+        planners=("GeneticAlgorithm",),
+        out=tmp_path,
+    )
+    monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
+    text = run.run(progress=False).read_text()
+    assert "| seed | untrained | trained | Greedy | MILP | GeneticAlgorithm |" in text and "trained > Greedy:" in text
+    data = json.loads((tmp_path / "EPT.json").read_text())
+    assert [r["seed"] for r in data["seeds"]] == [0, 1]
+    for record in data["seeds"]:
+        assert set(record["eval_seeds"]).isdisjoint(range(10_000)) and len(record["trained"]) == 2
+        assert [p[0] for p in record["curve"]] == [0, 5, 10]
+    assert (tmp_path / "EPT.png").stat().st_size > 0
+    assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
+    monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
+    assert run.run(progress=False).read_text() == text

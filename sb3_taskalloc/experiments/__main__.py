@@ -1,4 +1,4 @@
-"""``python -m sb3_taskalloc.experiments {table,almighty,diagnose}``: the paper's results table, its first figure, and
+"""``python -m sb3_taskalloc.experiments {table,almighty,diagnose,learn}``: the paper's results table, its first figure, and
 what a model's critic and actor are doing."""
 
 from __future__ import annotations
@@ -38,6 +38,15 @@ def main(argv: list[str] | None = None) -> None:
     diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
     diag.add_argument("--out", default="results/diagnose")
     diag.add_argument("--algo-kwargs", type=_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"')
+    learn = sub.add_parser("learn", help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)")
+    learn.add_argument("--env", required=True, choices=ENVS)
+    learn.add_argument("--seeds", type=int, default=5)
+    learn.add_argument("--steps", type=int, default=20_000, help="training env steps per seed")
+    learn.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes per seed")
+    learn.add_argument("--eval-every", type=int, default=2_000, help="env steps between the curve's evaluations")
+    learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
+    learn.add_argument("--algo-kwargs", type=_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
+    learn.add_argument("--out", default="results/learn")
     args = parser.parse_args(argv)
 
     import torch as th
@@ -45,6 +54,21 @@ def main(argv: list[str] | None = None) -> None:
     import envs  # noqa: F401  (registers the TaskAlloc ids)
 
     th.set_num_threads(1)
+    if args.command == "learn":
+        from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
+
+        if min(args.seeds, args.steps, args.eval_episodes, args.eval_every) < 1:
+            parser.error("--seeds, --steps, --eval-episodes and --eval-every must be >= 1")
+        planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
+        unknown = set(planners) - set(PLANNERS)
+        if unknown:
+            parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
+        run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
+                       out=args.out)  # fmt: skip
+        path = run.run()
+        print(path.read_text())
+        print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
+        return
     if args.command == "diagnose":
         _diagnose(parser, args)
         return

@@ -109,3 +109,34 @@ def plot_almighty(curves: Mapping[str, list[list[tuple[int, float]]]], path: str
     ax.legend(loc="lower right")
     ax.grid(alpha=0.3)
     return save_figure(fig, path)
+
+
+def plot_learning_progress(
+    curves: Mapping[int, list[tuple[int, float]]], baselines: Mapping[str, float], path: str | Path, title: str = ""
+) -> Path:
+    """Deterministic return against env steps: one faint line per seed, their mean, and horizontal baselines.
+
+    :param curves: seed -> (step, return) points
+    """
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    runs = [np.asarray(points, dtype=float) for points in curves.values() if len(points)]
+    for run in runs:
+        ax.plot(run[:, 0], run[:, 1], color="C0", alpha=0.3, lw=1)
+    if runs:
+        n = min(len(r) for r in runs)
+        ax.plot(
+            runs[0][:n, 0],
+            np.mean([r[:n, 1] for r in runs], axis=0),
+            color="C0",
+            lw=2,
+            label=f"TwoStageSAC ({len(runs)} seeds)",
+        )
+    for k, (name, value) in enumerate(baselines.items()):
+        ax.axhline(value, color=f"C{k + 1}", ls="--", lw=1.5, label=f"{name} ({value:.1f})")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("deterministic return")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    return save_figure(fig, path)

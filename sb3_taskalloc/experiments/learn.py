@@ -1,0 +1,228 @@
+"""Does TwoStageSAC learn? Trained against untrained, Greedy, the per-step MILP and the best planner, per seed.
+
+``python -m sb3_taskalloc.experiments learn --env RBF --seeds 5 --steps 20000`` trains one model per seed and evaluates,
+on the same held-out episodes per seed (reset seeds ``10_000 + 100·seed + k``, never a training seed):
+
+- the same policy untrained (its initial rule), and trained;
+- Greedy, the per-step MILP and the receding-horizon planners (the best of them is reported);
+- the critic at the end of training (:func:`~sb3_taskalloc.experiments.diagnose.diagnose`: correlation and scale of Q
+  against Monte-Carlo returns).
+
+During training the deterministic return is measured every ``--eval-every`` steps on two held-out episodes (the
+curve). Each finished seed is saved to ``<out>/<env>/seed_<k>.json`` under a digest of the settings and skipped when
+the command is run again: an interrupted run loses at most the seed in progress. The summary goes to ``<out>/<env>.md``,
+``.json`` and ``.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_taskalloc.common.utils import atomic_write_text
+from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, zoo_hyperparameters
+
+#: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
+PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
+
+
+def eval_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of the held-out evaluation episodes of training seed ``seed`` (disjoint from training seeds)."""
+    return [10_000 + 100 * seed + k for k in range(episodes)]
+
+
+def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable[[gym.Env], Any] | None = None) -> list[float]:
+    """Deterministic return of ``agent`` (anything with SB3's ``predict``) on one episode per reset seed.
+
+    :param planner: builds the agent from the episode's env instead (the planners act in the env they clone)
+    """
+    returns = []
+    for s in seeds:
+        env = gym.make(env_id)
+        obs, _ = env.reset(seed=s)
+        actor = planner(env) if planner is not None else agent
+        total, done = 0.0, False
+        while not done:
+            obs, reward, terminated, truncated, _ = env.step(actor.predict(obs, deterministic=True)[0])
+            total += float(reward)
+            done = terminated or truncated
+        returns.append(total)
+    return returns
+
+
+class Curve(BaseCallback):
+    """Deterministic return on held-out episodes every ``every`` env steps (and at step 0)."""
+
+    def __init__(self, env_id: str, seeds: list[int], every: int) -> None:
+        super().__init__()
+        self.env_id, self.seeds, self.every = env_id, seeds, every
+        self.points: list[tuple[int, float]] = []
+
+    def _on_training_start(self) -> None:
+        self.points.append((0, float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))))
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps % self.every == 0:
+            self.points.append((self.num_timesteps, float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))))
+        return True
+
+
+@dataclass
+class LearnRun:
+    """One env's learning experiment.
+
+    :param env: ``"RBF"``, ``"MT"``, ``"EPT"`` or ``"Almighty"``
+    :param seeds: training seeds 0 .. seeds − 1
+    :param steps: training env steps per seed
+    :param eval_episodes: held-out evaluation episodes per seed
+    :param eval_every: env steps between the curve's evaluations
+    :param algo_kwargs: TwoStageSAC keywords over the env's block of ``zoo_configs/two_stage_sac.yml``
+    :param planners: planner class names to run (the best is reported); empty: none
+    :param milp_time_limit: seconds per MILP solve
+    :param out: results folder
+    """
+
+    env: str
+    seeds: int = 5
+    steps: int = 20_000
+    eval_episodes: int = 10
+    eval_every: int = 2_000
+    algo_kwargs: dict[str, Any] = field(default_factory=dict)
+    planners: tuple[str, ...] = PLANNERS
+    milp_time_limit: float = 2.0
+    out: str | Path = "results/learn"
+
+    @property
+    def env_id(self) -> str:
+        return f"TaskAlloc/{self.env}-v0"
+
+    @property
+    def hyperparameters(self) -> dict[str, Any]:
+        return {**zoo_hyperparameters(self.env_id), **self.algo_kwargs}
+
+    @property
+    def key(self) -> str:
+        """Digest of every setting that changes a seed's result."""
+        settings = (self.steps, self.eval_episodes, self.eval_every, self.planners, self.milp_time_limit)
+        return config_key(env_settings(self.env_id), self.hyperparameters, settings)
+
+    def seed_path(self, seed: int) -> Path:
+        return Path(self.out) / self.env / f"seed_{seed}_{self.key}.json"
+
+    def run_seed(self, seed: int) -> dict[str, Any]:
+        """Train and evaluate one seed (or read it back when it was finished before)."""
+        path = self.seed_path(seed)
+        if path.exists():
+            return json.loads(path.read_text())
+        from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc import baselines as b
+        from sb3_taskalloc.experiments.diagnose import diagnose
+
+        seeds = eval_seeds(seed, self.eval_episodes)
+        t0 = time.perf_counter()
+        model = TwoStageSAC("TAMPolicy", self.env_id, seed=seed, device="cpu", **self.hyperparameters)
+        record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
+        curve = Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
+        model.learn(self.steps, callback=curve)
+        record["train_seconds"] = time.perf_counter() - t0
+        record["trained"] = episode_returns(model, self.env_id, seeds)
+        record["curve"] = curve.points
+        diagnosis = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
+        record.update(q_corr=diagnosis.q_corr, q_scale=diagnosis.q_scale, sampled=diagnosis.sampled_return)
+        record["Greedy"] = episode_returns(b.GreedyAllocator(), self.env_id, seeds)
+        record["MILP"] = episode_returns(b.MILPAllocator(time_limit=self.milp_time_limit), self.env_id, seeds)
+        for name in self.planners:
+            cls = getattr(b, name)
+
+            def planner(env: gym.Env, cls: Any = cls) -> Any:
+                return cls(env, seed=seed, **PLANNER_BUDGET)
+
+            record[name] = episode_returns(None, self.env_id, seeds, planner)
+        model.save(path.with_suffix(".zip"))
+        atomic_write_text(path, json.dumps(record) + "\n")
+        return record
+
+    def run(self, progress: bool = True) -> Path:
+        """Every seed (resuming), then the summary; :return: the Markdown path."""
+        from tqdm.auto import tqdm
+
+        records = [self.run_seed(s) for s in tqdm(range(self.seeds), desc=f"{self.env} learning", disable=not progress)]
+        return self.write(records)
+
+    def write(self, records: list[dict[str, Any]]) -> Path:
+        """``<out>/<env>.json`` (per seed), ``.png`` (curves) and ``.md`` (per seed, mean ± std, targets)."""
+        from sb3_taskalloc.experiments.plots import plot_learning_progress
+
+        columns = ["untrained", "trained", "Greedy", "MILP", *self.planners]
+        means = {c: [float(np.mean(r[c])) for r in records] for c in columns}
+        best_planner = max(self.planners, key=lambda p: float(np.mean(means[p]))) if self.planners else None
+        stem = Path(self.out) / self.env
+        atomic_write_text(stem.with_suffix(".json"), json.dumps({"settings": self.describe(), "seeds": records}) + "\n")
+        png = plot_learning_progress(
+            {r["seed"]: r["curve"] for r in records},
+            {"Greedy": float(np.mean(means["Greedy"])), "MILP": float(np.mean(means["MILP"]))},
+            stem.with_suffix(".png"),
+            f"{self.env_id}: deterministic return on held-out episodes while training",
+        )
+        shown = ["untrained", "trained", "Greedy", "MILP", *([best_planner] if best_planner else [])]
+        lines = [
+            f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
+            "episodes",
+            "",
+            f"Command: `{self.command()}`. Curve: `{png.name}`.",
+            "",
+            "| seed | " + " | ".join(shown) + " | corr(Q, G) | scale Q/G | train s |",
+            "|---" * (len(shown) + 4) + "|",
+        ]
+        for k, r in enumerate(records):
+            cells = " | ".join(f"{means[c][k]:.1f}" for c in shown)
+            lines.append(f"| {r['seed']} | {cells} | {r['q_corr']:.2f} | {r['q_scale']:.2f} | {r['train_seconds']:.0f} |")
+        summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
+        lines.append(f"| mean ± std | {summary} | {np.mean([r['q_corr'] for r in records]):.2f} | "
+                     f"{np.mean([r['q_scale'] for r in records]):.2f} | |")  # fmt: skip
+        lines += ["", *self.targets(means, records)]
+        return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+
+    def targets(self, means: dict[str, list[float]], records: list[dict[str, Any]]) -> list[str]:
+        """The learning targets, each with its measured value."""
+        trained, init, greedy, milp = (np.array(means[c]) for c in ("trained", "untrained", "Greedy", "MILP"))
+        n = len(trained)
+        ratio = trained.mean() / init.mean() if init.mean() > 0 else float("nan")
+        corr = np.array([r["q_corr"] for r in records])
+        scale = np.array([r["q_scale"] for r in records])
+        milp_target = " (target ≥ 0.99)" if self.env == "EPT" else " (goal ≥ 1)"
+        lines = [
+            f"- trained / untrained (means): {ratio:.3f} (target ≥ 1.10)",
+            f"- trained > untrained: {int((trained > init).sum())} of {n} seeds (target ≥ 4 of 5)",
+            f"- trained > Greedy: {int((trained > greedy).sum())} of {n} seeds (target all)",
+            f"- trained / per-step MILP (means): {trained.mean() / milp.mean():.3f}{milp_target}",
+            f"- critic: corr(Q, G) {corr.mean():.2f} (target ≥ 0.7), scale Q/G {scale.mean():.2f} (target 0.7–1.3)",
+            f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
+        ]
+        return lines
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "env": self.env_id,
+            "steps": self.steps,
+            "eval_episodes": self.eval_episodes,
+            "hyperparameters": self.hyperparameters,
+            "planners": list(self.planners),
+            "key": self.key,
+        }
+
+    def command(self) -> str:
+        extra = f" --algo-kwargs '{json.dumps(self.algo_kwargs)}'" if self.algo_kwargs else ""
+        planners = " --planners " + (" ".join(self.planners) if self.planners else "none")
+        return (
+            f"python -m sb3_taskalloc.experiments learn --env {self.env} --seeds {self.seeds} --steps {self.steps} "
+            f"--eval-episodes {self.eval_episodes} --eval-every {self.eval_every}{planners}{extra}"
+        )
