@@ -145,8 +145,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             supported_action_spaces=(spaces.MultiDiscrete,),
             support_multi_env=True,
         )
-        positive = {"batch_size": batch_size, "target_update_interval": target_update_interval}
-        for name, count in {**positive, "select_batch_size": select_batch_size}.items():
+        counts = {
+            "batch_size": batch_size,
+            "target_update_interval": target_update_interval,
+            "select_batch_size": select_batch_size,
+        }
+        for name, count in counts.items():
             if not (isinstance(count, int) and count >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {count!r}")
         self.ent_coef = ent_coef
