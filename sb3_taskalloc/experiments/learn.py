@@ -127,12 +127,12 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import diagnose
 
         seeds = eval_seeds(seed, self.eval_episodes)
-        t0 = time.perf_counter()
         model = TwoStageSAC("TAMPolicy", self.env_id, seed=seed, device="cpu", **self.hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
         curve = Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
+        t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
-        record["train_seconds"] = time.perf_counter() - t0
+        record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["trained"] = episode_returns(model, self.env_id, seeds)
         record["curve"] = curve.points
         diagnosis = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
@@ -179,7 +179,7 @@ class LearnRun:
             "",
             f"Command: `{self.command()}`. Curve: `{png.name}`.",
             "",
-            "| seed | " + " | ".join(shown) + " | corr(Q, G) | scale Q/G | train s |",
+            "| seed | " + " | ".join(shown) + " | corr(Q, G) | scale Q/G | training s |",
             "|---" * (len(shown) + 4) + "|",
         ]
         for k, r in enumerate(records):
