@@ -6,9 +6,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-import gymnasium as gym
-from stable_baselines3.common.callbacks import BaseCallback
-
+from sb3_taskalloc.experiments.learn import Curve
 from sb3_taskalloc.experiments.plots import plot_almighty
 
 VARIANTS = {
@@ -16,29 +14,6 @@ VARIANTS = {
     "sequence": {"preassign": False, "task_order": "sequential"},
     "random": {"preassign": False, "task_order": "random"},
 }
-
-
-class DeterministicReturn(BaseCallback):
-    """Every ``every`` steps, the deterministic return of the one-step Almighty episode."""
-
-    def __init__(self, every: int) -> None:
-        super().__init__()
-        self.every = every
-        self.env = gym.make("TaskAlloc/Almighty-v0")
-        self.points: list[tuple[int, float]] = []
-
-    def _evaluate(self) -> None:
-        obs, _ = self.env.reset(seed=0)
-        _, reward, *_ = self.env.step(self.model.predict(obs, deterministic=True)[0])
-        self.points.append((self.num_timesteps, float(reward)))
-
-    def _on_training_start(self) -> None:
-        self._evaluate()
-
-    def _on_step(self) -> bool:
-        if self.num_timesteps % self.every == 0:
-            self._evaluate()
-        return True
 
 
 def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str | Path = "results/almighty") -> Path:
@@ -56,7 +31,7 @@ def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str
             model = TwoStageSAC(
                 "TAMPolicy", "TaskAlloc/Almighty-v0", learning_rate=1e-3, learning_starts=200, seed=seed, policy_kwargs=kwargs
             )
-            callback = DeterministicReturn(every)
+            callback = Curve("TaskAlloc/Almighty-v0", [0], every)  # the one-step episode of reset seed 0
             model.learn(steps, callback=callback)
             curves[name].append(callback.points)
     with (folder / "almighty.csv").open("w", newline="") as f:

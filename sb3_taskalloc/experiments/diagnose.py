@@ -23,6 +23,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
+from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.two_stage_sac.losses import state_entropy
 
@@ -130,15 +131,14 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             bonus.append(bonus_t)
             g.append(_discounted(e["rewards"], gamma))
             g_soft.append(_discounted(e["rewards"] + bonus_t, gamma))
-            states = policy.parse(_stack(e["obs"][:-1], model.device))
+            states = ObsView(*(x[:-1] for x in view))  # the states decided in (the last observation is not)
             assign = th.as_tensor(np.stack(e["candidates"]), device=model.device).transpose(1, 2).float()
             q.append(th.stack(policy.critic(states, assign), 0).min(0).values.cpu().numpy())
             if policy.actor_prior is not None:
-                prior = policy.actor_prior(states)
-                pi = policy.actor(states)
+                prior = policy.actor_prior(view)
                 free = states.assignable
-                kl.append((pi.kl(prior)[free]).cpu().numpy())
-                changed.append((pi.get_actions(True) != prior.get_actions(True))[free].cpu().numpy())
+                kl.append((dist.kl(prior)[:-1][free]).cpu().numpy())
+                changed.append((dist.get_actions(True) != prior.get_actions(True))[:-1][free].cpu().numpy())
         qa, ga, gsa = np.concatenate(q), np.concatenate(g), np.concatenate(g_soft)
         figures.update(
             q_mean=float(qa.mean()),
