@@ -56,6 +56,12 @@ class TaskAllocEnv(gym.Env):
     fixed when the entity is assigned). No other reward. ``info`` carries ``completed_tasks``, ``task_reward_total``,
     ``cost_total``, ``invalid_assignments`` and ``entity_income`` (what each entity was paid this step).
 
+    ``info["commitment_reward"]`` is the same return credited when it is earned rather than when it is paid: a task's
+    current reward minus its team's charges in the step its committed entities cover it (it closes), then at
+    completion the change of its reward since (the decay during travel), and at termination minus the credit of every
+    closed task still unpaid. Its sum over a terminated episode equals the return; a learner can use it to credit a
+    profit to the decision that earned it, steps before the team arrives (``TwoStageSAC(reward_timing="commitment")``).
+
     ## Starting State
 
     Entity table restored (positions at their start cells), tasks drawn by the arrival process.
@@ -197,6 +203,8 @@ class TaskAllocEnv(gym.Env):
         self._tpos = np.zeros((M, 2))
         self._age = np.zeros(M, dtype=np.int64)
         self._tower = np.full(M, -1, dtype=np.int64)  # EPT: tower that is the task
+        self._credit = np.zeros(M)  # profit credited to a closed task by ``info["commitment_reward"]``, not yet paid
+        self._credited = np.zeros(M, dtype=bool)
         self._open_ext = np.zeros(M + 1, dtype=bool)
         self._dist: np.ndarray | None = None
         self._geom_dirty = True
@@ -317,8 +325,11 @@ class TaskAllocEnv(gym.Env):
         tf = lay.task_features(self._reward, self._rem, self._tpos, self._age)
         return lay.observation(ef, tf, self._pc_obs.copy(), self._free, self._open)
 
-    def _info(self, completed: int, rewards: float, costs: float, invalid: int, income: np.ndarray) -> dict[str, Any]:
+    def _info(
+        self, completed: int, rewards: float, costs: float, invalid: int, income: np.ndarray, commitment: float = 0.0
+    ) -> dict[str, Any]:
         return {
+            "commitment_reward": commitment,
             "completed_tasks": completed,
             "task_reward_total": rewards,
             "cost_total": costs,
@@ -363,12 +374,16 @@ class TaskAllocEnv(gym.Env):
         rewards = costs = 0.0
         n_complete = 0
         income = np.zeros(self.max_entities)
+        settled = 0.0  # credits of the tasks completed now, already counted by the commitment reward
         if complete.any():
             team = committed & complete[self._assigned]
             income = self._charge * team
             rewards = float(self._reward @ complete)
             costs = float(income.sum())
             n_complete = int(complete.sum())
+            settled = float(self._credit @ complete)
+            self._credit *= ~complete
+            self._credited &= ~complete
             # Release the teams (used up when `consume`), free the slots, give EPT's task towers back.
             if self.consume:
                 self._alive &= ~team
@@ -410,7 +425,30 @@ class TaskAllocEnv(gym.Env):
 
         exhausted = self._arrival.exhausted() and not self._occupied.any()
         terminated = self.one_step or not self._alive.any() or exhausted
-        return self._obs(), rewards - costs, bool(terminated), False, self._info(n_complete, rewards, costs, n_invalid, income)
+        obs = self._obs()
+        commitment = rewards - costs - settled + self._settle_credits(bool(terminated))
+        info = self._info(n_complete, rewards, costs, n_invalid, income, commitment)
+        return obs, rewards - costs, bool(terminated), False, info
+
+    def _settle_credits(self, terminated: bool) -> float:
+        """The commitment reward's credits of this step (see the Rewards section): + (current reward − team charges) of
+        each task that is closed (covered by committed entities) and not yet credited, − the credit of a task that
+        reopened, and at termination − every credit still unpaid, so that an episode's commitment rewards sum to its
+        return."""
+        M = self.max_tasks
+        committed = self._assigned >= 0
+        charges = np.bincount(self._assigned[committed], weights=self._charge[committed], minlength=M)
+        new = self._occupied & ~self._open & ~self._credited
+        profit = np.where(new, self._reward - charges, 0.0)
+        refund = self._credited & (self._open | ~self._occupied)
+        self._credit += profit
+        self._credited |= new
+        if terminated:
+            refund |= self._credited
+        total = float(profit.sum() - self._credit @ refund)
+        self._credit *= ~refund
+        self._credited &= ~refund
+        return total
 
     # ------------------------------------------------------------ copying
 

@@ -407,3 +407,53 @@ def test_decay_of_committed_tasks(while_committed):
     assert obs["task_reward"][1] == pytest.approx(8.0 * 0.5**3)  # nobody serves task 1
     assert obs["task_reward"][0] == pytest.approx(8.0 * 0.5**3 if while_committed else 8.0)
     assert gym.make("TaskAlloc/MT-v0").unwrapped.decay_while_committed is False
+
+
+def test_commitment_reward_credits_at_closing_and_corrects_at_completion():
+    """``info["commitment_reward"]`` pays reward − charges in the step the committed team covers the task, then the
+    decay during travel when the team arrives: the same total as the env reward, steps earlier."""
+    from envs import EntityTable, TaskAllocEnv, TaskTable
+
+    ents = EntityTable(cost=[1.0, 1.0], supply=[[1.0], [1.0]], positions=[[0, 0], [0, 0]])
+    tasks = TaskTable(rows=[[8.0, 2.0]], positions=[[3, 0]])
+    env = TaskAllocEnv(
+        ents, tasks, max_tasks=1, grid_size=10, travel="chebyshev", travel_cost=0.0, arrival="static", decay=0.9,
+        decay_after=0,
+    )  # fmt: skip
+    env.reset(seed=0)
+    _, r, *_, info = env.step(np.array([0, 1]))  # one entity: the task stays open
+    assert (r, info["commitment_reward"]) == (0.0, 0.0)
+    _, r, *_, info = env.step(np.array([1, 0]))  # the second entity closes it: credited now, before anyone arrives
+    assert r == 0.0
+    assert info["commitment_reward"] == pytest.approx(8.0 * 0.9**2 - 2.0)  # the reward after two steps of decay
+    credits, paid = [info["commitment_reward"]], 0.0
+    for _ in range(6):
+        _, r, *_, info = env.step(np.array([1, 1]))
+        credits.append(info["commitment_reward"])
+        paid += r
+        if r:
+            break
+    assert paid != 0.0 and sum(credits) == pytest.approx(paid)  # the decay during travel is corrected on arrival
+
+
+@pytest.mark.parametrize("env_id", ["TaskAlloc/RBF-v0", "TaskAlloc/MT-v0", "TaskAlloc/EPT-v0", "TaskAlloc/Almighty-v0"])
+def test_commitment_reward_sums_to_the_return(env_id):
+    """Over an episode the commitment rewards sum to the return, less the credits of tasks still unpaid at truncation."""
+    from sb3_taskalloc.baselines import GreedyAllocator
+
+    env = gym.make(env_id)
+    obs, _ = env.reset(seed=3)
+    greedy = GreedyAllocator()
+    paid = credited = 0.0
+    done = early = False
+    for _ in range(400):
+        obs, r, terminated, truncated, info = env.step(greedy.predict(obs)[0])
+        paid, credited = paid + r, credited + info["commitment_reward"]
+        early |= credited != pytest.approx(paid)
+        if terminated or truncated:
+            done = True
+            break
+    assert done
+    unpaid = 0.0 if terminated else float(env.unwrapped._credit.sum())
+    assert credited - unpaid == pytest.approx(paid, abs=1e-6)
+    assert early or env_id in ("TaskAlloc/EPT-v0", "TaskAlloc/Almighty-v0")  # with travel the credit comes first

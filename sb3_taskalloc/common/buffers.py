@@ -25,6 +25,7 @@ class TwoStageReplayBufferSamples(NamedTuple):
     rewards: th.Tensor  # (B, 1)
     candidates: th.Tensor  # (B, M, N) bool
     pick_rank: th.Tensor  # (B, M, N) long, −1 = not picked
+    discounts: th.Tensor | None = None  # (B, 1) γ^k of the bootstrap after k ≤ n steps (n-step returns), else None
 
 
 def pack_decision(env_action: np.ndarray, candidates: np.ndarray, pick_rank: np.ndarray) -> np.ndarray:
@@ -58,6 +59,10 @@ class TwoStageReplayBuffer(DictReplayBuffer):
     :param n_envs: number of parallel envs
     :param optimize_memory_usage: not supported (Dict observations)
     :param handle_timeout_termination: treat time-limit truncation as non-terminal (SB3 semantics)
+    :param n_steps: sample n-step returns Σ_{k<n} γ^k r_{t+k} with the observation after the last of those steps as
+        next observation, cut at the end of the episode (SB3's ``NStepReplayBuffer`` arithmetic); 1: one-step
+        transitions
+    :param gamma: discount of the n-step returns
     """
 
     def __init__(
@@ -69,7 +74,13 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         n_envs: int = 1,
         optimize_memory_usage: bool = False,
         handle_timeout_termination: bool = True,
+        n_steps: int = 1,
+        gamma: float = 0.99,
     ) -> None:
+        if not (isinstance(n_steps, int) and n_steps >= 1):
+            raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
+        self.n_steps = n_steps
+        self.gamma = float(gamma)
         super().__init__(
             buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage, handle_timeout_termination
         )
@@ -100,17 +111,39 @@ class TwoStageReplayBuffer(DictReplayBuffer):
     ) -> TwoStageReplayBufferSamples:
         env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
         obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.observations.items()}
-        next_obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.next_observations.items()}
-        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
+        if self.n_steps == 1:
+            last, discounts = batch_inds, None
+            rewards = self.rewards[batch_inds, env_indices]
+        else:
+            last, rewards, gamma_k = self._n_step(batch_inds, env_indices)
+            discounts = self.to_torch(gamma_k).reshape(-1, 1)
+        next_obs = {key: self.to_torch(v[last, env_indices]) for key, v in self.next_observations.items()}
+        dones = self.dones[last, env_indices] * (1 - self.timeouts[last, env_indices])
         return TwoStageReplayBufferSamples(
             observations=obs,
             actions=th.as_tensor(self.actions[batch_inds, env_indices].astype(np.int64), device=self.device),
             next_observations=next_obs,
             dones=self.to_torch(dones).reshape(-1, 1),
-            rewards=self.to_torch(self.rewards[batch_inds, env_indices]).reshape(-1, 1),
+            rewards=self.to_torch(rewards).reshape(-1, 1),
             candidates=th.as_tensor(self.candidates[batch_inds, env_indices], device=self.device),
             pick_rank=th.as_tensor(self.pick_rank[batch_inds, env_indices].astype(np.int64), device=self.device),
+            discounts=discounts,
         )
+
+    def _n_step(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(index of the last step, n-step return, γ^k) of each sampled transition: the return sums the rewards of up to
+        ``n_steps`` steps, stopping after the first step that ends its episode (terminal or truncated) and before the
+        write position, whose successor is not stored yet."""
+        steps = np.arange(self.n_steps)
+        indices = (batch_inds[:, None] + steps) % self.buffer_size  # (B, n)
+        env = env_indices[:, None]
+        ends = np.logical_or(self.dones[indices, env], self.timeouts[indices, env])
+        ends[:, :-1] |= indices[:, :-1] == (self.pos - 1) % self.buffer_size  # the newest stored step ends the window
+        last_k = np.where(ends.any(1), ends.argmax(1), self.n_steps - 1)
+        mask = steps[None, :] <= last_k[:, None]
+        returns = (self.rewards[indices, env] * (self.gamma**steps)[None, :] * mask).sum(1)
+        last = (batch_inds + last_k) % self.buffer_size
+        return last, returns.astype(np.float32), (self.gamma ** (last_k + 1)).astype(np.float32)
 
     def nbytes_per_transition(self) -> int:
         """Bytes stored per transition (observations, next observations, decision, reward, flags)."""

@@ -1,4 +1,5 @@
-"""Mixers of the stage-1 critics: AMIX (the paper's attention-hypernetwork mixer) and the global MLP of "W/o AMIX"."""
+"""Mixers of the stage-1 critics: AMIX (the paper's attention-hypernetwork mixer), the per-task team value added to it,
+and the global MLP of "W/o AMIX"."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import NamedTuple
 import torch as th
 from torch import nn
 
-from sb3_taskalloc.common.torch_layers import NEG, FlatNet, ObsView, linear, mlp
+from sb3_taskalloc.common.torch_layers import NEG, FlatNet, ObsView, linear, mlp, symlog
 
 
 class MixContext(NamedTuple):
@@ -102,6 +103,41 @@ class AMIXMixer(nn.Module):
     def forward(self, q_i: th.Tensor, view: ObsView) -> th.Tensor:
         """:param q_i: (B, N) per-entity values; :return: (B,) Q_tot"""
         return self.mix(q_i, self.context(view))
+
+
+class TeamValue(nn.Module):
+    """Value of the teams an assignment sends, task by task (not in the paper): V(s, a) = Σ_{j open} g(z_j) with
+    z_j = [task features, supply share per resource min(Σ_i a_ij x_ik / d_jk, 2), its minimum over resources,
+    symlog Σ_i a_ij c_ij, symlog Σ_i a_ij].
+
+    AMIX mixes per-entity values Q_i(s, c_i), none of which depends on who else is a candidate of the same task, so it
+    cannot tell a candidate set that covers its task from one that does not. g sees each task's aggregate supply, cost and
+    size. With policy probabilities a = π the aggregates are their expectations (mean field), which the actor loss
+    differentiates: the gradient moves entities towards tasks whose expected supply falls short of their demand.
+
+    :param task_dim: task feature size
+    :param n_resources: K
+    :param hidden_dim: width of g
+    :param activation_fn: activation
+    """
+
+    size_agnostic = True
+
+    def __init__(
+        self, task_dim: int, n_resources: int, hidden_dim: int = 64, activation_fn: type[nn.Module] = nn.ReLU
+    ) -> None:
+        super().__init__()
+        self.g = mlp(task_dim + n_resources + 3, hidden_dim, 1, activation_fn)
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot assignment or assignment probabilities; :return: (B,)"""
+        supply = th.einsum("bnm,bnk->bmk", assign, view.supply)
+        need = view.demand > 0
+        share = th.where(need, supply / view.demand.clamp_min(1e-6), 2.0).clamp_max(2.0)
+        cost = (assign * view.pair_cost).sum(1)
+        z = th.cat([view.task, share, share.min(-1, keepdim=True).values, symlog(cost).unsqueeze(-1),
+                    symlog(assign.sum(1)).unsqueeze(-1)], -1)  # fmt: skip
+        return (self.g(z).squeeze(-1) * view.task_mask).sum(-1)
 
 
 class GlobalMixer(FlatNet):

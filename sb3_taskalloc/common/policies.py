@@ -17,7 +17,7 @@ import torch as th
 from torch import nn
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
-from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, MixContext
+from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, MixContext, TeamValue
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
 
 
@@ -47,9 +47,10 @@ class AMIXContext(NamedTuple):
 
     scores: th.Tensor  # (B, N, M) Q_i(s, j)
     mix: MixContext  # AMIX attention, values and hyper-bias
+    view: ObsView  # the states (read by the team value with each assignment)
 
     def detach(self) -> AMIXContext:
-        return AMIXContext(self.scores.detach(), self.mix.detach())
+        return AMIXContext(self.scores.detach(), self.mix.detach(), self.view)
 
 
 class GlobalContext(NamedTuple):
@@ -65,16 +66,18 @@ CriticContext = AMIXContext | GlobalContext
 
 
 class AMIXCritic(nn.Module):
-    """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) with per-entity scores Q_i(s, j) = o_i·q_j (+ pair term).
+    """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) (+ V_team(s, c)) with per-entity scores Q_i(s, j) = o_i·q_j (+ pair term).
 
     :param scorer: per-entity Q scorer (TAM or flat)
     :param mixer: the AMIX mixer
+    :param team: the per-task team value added to the mixed value, or None (the paper's critic)
     """
 
-    def __init__(self, scorer: nn.Module, mixer: AMIXMixer) -> None:
+    def __init__(self, scorer: nn.Module, mixer: AMIXMixer, team: TeamValue | None = None) -> None:
         super().__init__()
         self.scorer = scorer
         self.mixer = mixer
+        self.team = team
 
     @property
     def size_agnostic(self) -> bool:
@@ -82,11 +85,12 @@ class AMIXCritic(nn.Module):
 
     def context(self, view: ObsView) -> AMIXContext:
         """Everything that does not depend on the assignment (computed once, then mixed for several assignments)."""
-        return AMIXContext(self.scorer(view), self.mixer.context(view))
+        return AMIXContext(self.scorer(view), self.mixer.context(view), view)
 
     def mix(self, ctx: AMIXContext, assign: th.Tensor) -> th.Tensor:
         """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
-        return self.mixer.mix((ctx.scores * assign).sum(-1), ctx.mix)
+        q = self.mixer.mix((ctx.scores * assign).sum(-1), ctx.mix)
+        return q if self.team is None else q + self.team(ctx.view, assign)
 
     def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
         return self.mix(self.context(view), assign)

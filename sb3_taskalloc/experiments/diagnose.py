@@ -5,7 +5,10 @@
 - critic calibration: on the states of sampled episodes, the correlation and the scale ratio (least-squares slope
   through the origin) of Q(s, c) = min_k AMIX^k(Q^k_i(s, c_i)) for the executed pre-assignment c against the
   Monte-Carlo discounted return G_t = Σ_k γ^k r_{t+k}, and against the entropy-inclusive return that the soft target
-  bootstraps, G^H_t = Σ_k γ^k (r_{t+k} + γ α H(s_{t+k+1}));
+  bootstraps, G^H_t = Σ_k γ^k (r_{t+k} + γ α H(s_{t+k+1})). The critic bootstraps through the time limit (it does
+  not observe time), so the returns are summed over a rollout that runs past the limit until the discount has spent
+  99 % of its weight; only the states within the limit are compared. Cut at the limit, G_t would fall to 0 near the end
+  of every episode, and the correlation would measure that fall instead of the critic;
 - the entropy bonus of the stage-1 target against the reward: mean γ·α·H(s') and mean |r| per transition;
 - the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
   changed;
@@ -15,6 +18,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -67,7 +71,8 @@ class Diagnosis:
 
 
 def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[str, Any]:
-    """One episode of the model's two-stage decisions: observations, candidate sets, rewards and the total."""
+    """One episode of the model's two-stage decisions: observations, candidate sets, rewards and whether it ended by
+    termination."""
     policy = model.policy
     obs, _ = env.reset(seed=seed)
     observations, candidates, rewards = [], [], []
@@ -114,12 +119,17 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
     policy, gamma = model.policy, float(model.gamma)
     alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())
     env = gym.make(env_id)
-    sampled = [_episode(model, env, seed + k, deterministic=False) for k in range(episodes)]
+    limit = env.spec.max_episode_steps if env.spec is not None else None
+    long_env = env
+    if limit is not None:  # run past the limit until γ^k < 1 %: the critic's returns do not stop there
+        long_env = gym.make(env_id, max_episode_steps=limit + math.ceil(math.log(0.01) / math.log(gamma)))
+    sampled = [_episode(model, long_env, seed + k, deterministic=False) for k in range(episodes)]
     deterministic = [_episode(model, env, seed + k, deterministic=True) for k in range(episodes)]
     nan = float("nan")
     figures: dict[str, float] = dict(q_mean=nan, mc_return_mean=nan, q_corr=nan, q_scale=nan, soft_return_mean=nan)
     figures.update(q_corr_soft=nan, entropy_bonus_mean=nan, kl_per_entity=nan, argmax_changed=nan)
-    rewards = np.concatenate([e["rewards"] for e in sampled])
+    within = slice(0, limit)  # the states and rewards of the episodes proper
+    rewards = np.concatenate([e["rewards"][within] for e in sampled])
     if policy.actor is not None and policy.critic is not None:
         q, g, g_soft, bonus, kl, changed = [], [], [], [], [], []
         for e in sampled:
@@ -128,17 +138,18 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             per_entity = getattr(model, "entropy_bonus", "sum") == "mean"
             entropy = state_entropy(dist, view, per_entity).cpu().numpy()  # the bonus's H(s_t) for t = 0..T
             bonus_t = gamma * alpha * entropy[1:] * (1 - np.r_[np.zeros(len(e["rewards"]) - 1), float(e["terminated"])])
-            bonus.append(bonus_t)
-            g.append(_discounted(e["rewards"], gamma))
-            g_soft.append(_discounted(e["rewards"] + bonus_t, gamma))
-            states = ObsView(*(x[:-1] for x in view))  # the states decided in (the last observation is not)
-            assign = th.as_tensor(np.stack(e["candidates"]), device=model.device).transpose(1, 2).float()
+            bonus.append(bonus_t[within])
+            g.append(_discounted(e["rewards"], gamma)[within])
+            g_soft.append(_discounted(e["rewards"] + bonus_t, gamma)[within])
+            n = len(g[-1])
+            states = ObsView(*(x[:n] for x in view))  # the states decided in within the limit
+            assign = th.as_tensor(np.stack(e["candidates"][:n]), device=model.device).transpose(1, 2).float()
             q.append(th.stack(policy.critic(states, assign), 0).min(0).values.cpu().numpy())
             if policy.actor_prior is not None:
-                prior = policy.actor_prior(view)
+                now, prior = policy.actor(states), policy.actor_prior(states)
                 free = states.assignable
-                kl.append((dist.kl(prior)[:-1][free]).cpu().numpy())
-                changed.append((dist.get_actions(True) != prior.get_actions(True))[:-1][free].cpu().numpy())
+                kl.append(now.kl(prior)[free].cpu().numpy())
+                changed.append((now.get_actions(True) != prior.get_actions(True))[free].cpu().numpy())
         qa, ga, gsa = np.concatenate(q), np.concatenate(g), np.concatenate(g_soft)
         figures.update(
             q_mean=float(qa.mean()),
@@ -158,7 +169,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         episodes=episodes,
         gamma=gamma,
         ent_coef=alpha,
-        sampled_return=float(np.mean([e["rewards"].sum() for e in sampled])),
+        sampled_return=float(np.mean([e["rewards"][within].sum() for e in sampled])),
         deterministic_return=float(np.mean([e["rewards"].sum() for e in deterministic])),
         abs_reward_mean=float(np.abs(rewards).mean()),
         **figures,

@@ -63,7 +63,7 @@ def preassign_critic_loss(
     rewards: th.Tensor,
     dones: th.Tensor,
     candidates: th.Tensor,
-    gamma: float,
+    gamma: float | th.Tensor,
     alpha: th.Tensor,
     entropy_per_entity: bool = False,
 ) -> PreAssignCriticLoss:
@@ -71,7 +71,8 @@ def preassign_critic_loss(
     y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], H(s) = Σ_i H(π_i(·|s)), and the
     loss ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)² on the stored pre-assignment c.
 
-    :param rewards: (B,) env rewards; :param dones: (B,) 1 where s' is terminal (not truncated)
+    :param rewards: (B,) env rewards (n-step returns); :param dones: (B,) 1 where s' is terminal (not truncated)
+    :param gamma: γ, or (B,) γ^k per transition for n-step returns (s' is then the state k steps later)
     :param candidates: (B, M, N) the stored candidate sets (the one-hot c)
     :param alpha: the temperature α (a constant of this loss)
     :param entropy_per_entity: the bonus is the mean per-entity entropy instead of the sum (:func:`state_entropy`)

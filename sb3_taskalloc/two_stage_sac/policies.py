@@ -15,7 +15,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
-from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer
+from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, TeamValue
 from sb3_taskalloc.common.policies import AMIXCritic, GlobalCritic, PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import PAIR_COST, UNIT_COST, FlatScorer, ObsView, PairScorer, PointerHead, parse_obs
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of
@@ -60,6 +60,9 @@ class TAMPolicy(BasePolicy):
     :param mixer: ``"amix"`` or ``"global"`` (the "W/o AMIX" ablation: one MLP over the flattened state and c)
     :param monotonic_mixer: QMIX-style non-negative mixing weights
     :param hyper_bias: state-dependent AMIX bias
+    :param team_value: add the per-task value of the teams an assignment sends to the AMIX critic
+        (:class:`~sb3_taskalloc.common.mixers.TeamValue`, not in the paper): the critic then sees whether a candidate set
+        covers its task. ``False``: the paper's critic
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -89,6 +92,7 @@ class TAMPolicy(BasePolicy):
         mixer: Literal["amix", "global"] = "amix",
         monotonic_mixer: bool = False,
         hyper_bias: bool = True,
+        team_value: bool = False,
         n_critics: int = 2,
         heuristic_init: bool = True,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -129,6 +133,7 @@ class TAMPolicy(BasePolicy):
         self.mixer = mixer
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
+        self.team_value = team_value
         self.n_critics = n_critics
         self.heuristic_init = heuristic_init
         self.activation_fn = activation_fn
@@ -254,6 +259,7 @@ class TAMPolicy(BasePolicy):
                 mixer=self.mixer,
                 monotonic_mixer=self.monotonic_mixer,
                 hyper_bias=self.hyper_bias,
+                team_value=self.team_value,
                 n_critics=self.n_critics,
                 heuristic_init=self.heuristic_init,
                 activation_fn=self.activation_fn,
@@ -376,9 +382,10 @@ def _flat_scorer(policy: TAMPolicy, scale: float) -> nn.Module:
 
 
 def _amix_critic(policy: TAMPolicy) -> AMIXCritic:
-    _, _, Fe, Ft, _ = policy.dims
+    _, _, Fe, Ft, K = policy.dims
     mixer = AMIXMixer(Fe, Ft, policy.hidden_dim, policy.monotonic_mixer, policy.hyper_bias, policy.activation_fn)
-    return AMIXCritic(policy._scorer(scale=1.0), mixer)  # critics unscaled: Q-values need no temperature
+    team = TeamValue(Ft, K, policy.hidden_dim, policy.activation_fn) if policy.team_value else None
+    return AMIXCritic(policy._scorer(scale=1.0), mixer, team)  # critics unscaled: Q-values need no temperature
 
 
 def _global_critic(policy: TAMPolicy) -> GlobalCritic:

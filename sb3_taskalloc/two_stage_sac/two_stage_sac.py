@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import math
 import pathlib
+import warnings
 from collections import defaultdict
 from typing import Any, ClassVar, Literal, TypeVar
 
@@ -48,7 +49,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param env: a ``TaskAlloc`` environment (or its id)
     :param learning_rate: learning rate of every optimizer (constant or schedule)
     :param buffer_size: replay buffer size
-    :param learning_starts: env steps of uniformly random valid decisions before learning
+    :param learning_starts: env steps of warm-up decisions (``warmup_exploration``) before learning
     :param batch_size: minibatch size
     :param tau: Polyak coefficient of the target networks
     :param gamma: discount factor of the stage-1 MDP
@@ -56,9 +57,20 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param gradient_steps: gradient steps per rollout (-1: as many as env steps collected)
     :param replay_buffer_class: replay buffer class (default :class:`TwoStageReplayBuffer`)
     :param replay_buffer_kwargs: extra replay buffer arguments
+    :param n_steps: n-step returns for the stage-1 critics' target (implementation detail 2): the target sums up to
+        ``n_steps`` discounted env rewards before bootstrapping, so rewards that arrive steps after the decision that
+        earned them reach its value in one update (SB3's ``n_steps`` of SAC)
     :param ent_coef: stage-1 entropy coefficient α: ``"auto"``, ``"auto_0.1"`` (auto with initial value) or a float
     :param select_ent_coef: select-stage entropy coefficient α_s (same forms)
     :param target_entropy_ratio: H̄* as a fraction of the maximum per-entity (or per-pick) entropy
+    :param warmup_exploration: how the warm-up decides: ``"uniform"`` random valid pre-assignments and picks (SB3's
+        random warm-up), or ``"policy"``, the stochastic policy itself (with ``heuristic_init``, samples of the
+        cost-greedy rules), so that the first transitions the critics learn from resemble the deployed behaviour
+        (implementation detail 8)
+    :param reward_timing: the reward the stage-1 critics learn from: ``"completion"``, the env reward (paid when a team
+        has arrived and covers its task, the paper's), or ``"commitment"``, the env's ``info["commitment_reward"]``:
+        the same profit credited in the step its team is committed (implementation detail 2), which sums to the same
+        return over an episode but lets the decision that earned a profit see it
     :param entropy_bonus: the stage-1 entropy term of the target and the actor loss: ``"sum"`` over the free entities
         (the joint entropy, the paper's) or their ``"mean"`` (implementation detail 2)
     :param actor_warmup: gradient steps during which only the critics learn: the pre-assign actor, the pointer and
@@ -103,10 +115,13 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         gradient_steps: int = 1,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
+        n_steps: int = 1,
         ent_coef: str | float = "auto",
         select_ent_coef: str | float = "auto",
         target_entropy_ratio: float = 0.3,
+        reward_timing: Literal["completion", "commitment"] = "completion",
         entropy_bonus: Literal["sum", "mean"] = "sum",
+        warmup_exploration: Literal["uniform", "policy"] = "uniform",
         actor_warmup: int = 0,
         prior_coef: float = 10.0,
         select_prior_coef: float = 3.0,
@@ -150,15 +165,26 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "target_update_interval": target_update_interval,
             "select_batch_size": select_batch_size,
         }
+        if not (isinstance(n_steps, int) and n_steps >= 1):
+            raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
+        self.n_steps = n_steps
+        if n_steps > 1:
+            self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "n_steps": n_steps, "gamma": gamma}
         for name, count in counts.items():
             if not (isinstance(count, int) and count >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {count!r}")
         self.ent_coef = ent_coef
         self.select_ent_coef = select_ent_coef
         self.target_entropy_ratio = target_entropy_ratio
+        if reward_timing not in ("completion", "commitment"):
+            raise ValueError(f"reward_timing must be 'completion' or 'commitment', got {reward_timing!r}")
+        self.reward_timing = reward_timing
         if entropy_bonus not in ("sum", "mean"):
             raise ValueError(f"entropy_bonus must be 'sum' or 'mean', got {entropy_bonus!r}")
         self.entropy_bonus = entropy_bonus
+        if warmup_exploration not in ("uniform", "policy"):
+            raise ValueError(f"warmup_exploration must be 'uniform' or 'policy', got {warmup_exploration!r}")
+        self.warmup_exploration = warmup_exploration
         if actor_warmup < 0:
             raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
         self.actor_warmup = actor_warmup
@@ -182,7 +208,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 "VecNormalize is not supported by TwoStageSAC: TAMPolicy normalises its inputs itself (symlog) and needs the "
                 "raw masks, demands and costs; remove the VecNormalize wrapper"
             )
-        super()._setup_model()
+        with warnings.catch_warnings():
+            # SB3 warns that n_steps is ignored with a custom buffer class; TwoStageReplayBuffer gets it through
+            # replay_buffer_kwargs (set in __init__), as the warning itself recommends.
+            warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom", category=UserWarning)
+            super()._setup_model()
         self._create_aliases()
         self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
         self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = self._entropy_coefficient(
@@ -222,10 +252,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Masked exploration: uniformly random valid pre-assignments and picks during warm-up, then the stochastic
-        policy. Returns the env action and the packed decision stored in the replay buffer."""
+        """Masked exploration: during warm-up uniformly random valid pre-assignments and picks (``warmup_exploration=
+        "uniform"``), otherwise the stochastic policy. Returns the env action and the packed decision stored in the
+        replay buffer."""
         assert self._last_obs is not None, "self._last_obs was not set"
-        uniform = self.num_timesteps < learning_starts
+        uniform = self.num_timesteps < learning_starts and self.warmup_exploration == "uniform"
         self.policy.set_training_mode(False)
         with th.inference_mode():
             view = self.policy.parse(obs_as_tensor(self._last_obs, self.device))  # type: ignore[arg-type]
@@ -233,6 +264,27 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         action = decision.env_action.cpu().numpy()
         buffer_action = pack_decision(action, decision.candidates.cpu().numpy(), decision.pick_rank.cpu().numpy())
         return action, buffer_action
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """SB3's storage, with the commitment reward in place of the env reward when ``reward_timing="commitment"``
+        (the episode statistics keep the env reward)."""
+        if self.reward_timing == "commitment":
+            try:
+                reward = np.array([info["commitment_reward"] for info in infos], dtype=np.float32)
+            except KeyError:
+                raise ValueError(
+                    "reward_timing='commitment' needs info['commitment_reward'] from the env (the TaskAlloc envs provide "
+                    "it); use reward_timing='completion' with other envs"
+                ) from None
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
 
     # ------------------------------------------------------------------ training
 
@@ -270,7 +322,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     replay_data.rewards.squeeze(-1),
                     replay_data.dones.squeeze(-1),
                     replay_data.candidates,
-                    self.gamma,
+                    self.gamma if replay_data.discounts is None else replay_data.discounts.squeeze(-1),
                     alpha,
                     self.entropy_bonus == "mean",
                 )
