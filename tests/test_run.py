@@ -131,8 +131,13 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
 
     from sb3_taskalloc.experiments import demo
 
-    demo.main(["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--eval-episodes", "1", "--threads", "1", "--out", str(tmp_path)])
+    demo.main(
+        ["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--eval-episodes", "1", "--eval-every", "20", "--threads", "1",
+         "--out", str(tmp_path)]
+    )  # fmt: skip
     record = json.loads((tmp_path / "results.json").read_text())
+    assert [step for step, _ in record["eval_curve"]] == [20, 40]  # EvalCallback's deterministic evaluations
+    assert (tmp_path / "evaluations.npz").stat().st_size > 0
     assert record["env"] == "TaskAlloc/EPT-v0" and record["steps"] == 40 and record["device"] in ("cpu", "cuda")
     assert set(record["eval"]) == {"TwoStageSAC", "Greedy", "Random"}
     assert all(np.isfinite(mean) for mean, _ in record["eval"].values())

@@ -43,23 +43,31 @@ def smooth(values: np.ndarray, window: int = 11) -> np.ndarray:
 
 
 def plot_learning_curve(
-    curves: Mapping[str, np.ndarray],
+    curves: Mapping[str, np.ndarray | tuple[np.ndarray, np.ndarray]],
     path: str | Path,
     title: str = "",
     baselines: Mapping[str, float] | None = None,
     xlabel: str = "episode",
+    points: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Path:
-    """Episode returns (raw, faint; smoothed, solid) with horizontal lines for baselines. Returns the PNG path."""
+    """Returns (raw, faint; smoothed, solid) with horizontal lines for baselines. Returns the PNG path.
+
+    :param curves: name -> returns in order (x = 1, 2, ...) or (x, returns)
+    :param points: name -> (x, values) drawn as they are, with markers (e.g. periodic evaluations)
+    """
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     for i, (name, values) in enumerate(curves.items()):
         color = f"C{i}"
-        values = np.asarray(values, dtype=float)
-        x = np.arange(1, len(values) + 1)
-        ax.plot(x, values, color=color, alpha=0.25, lw=1)
-        ax.plot(x, smooth(values), color=color, lw=2, label=name)
+        x, y = values if isinstance(values, tuple) else (np.arange(1, len(values) + 1), values)
+        y = np.asarray(y, dtype=float)
+        ax.plot(x, y, color=color, alpha=0.25, lw=1)
+        ax.plot(x, smooth(y), color=color, lw=2, label=name)
+    for i, (name, (x, y)) in enumerate((points or {}).items(), start=len(curves)):
+        ax.plot(x, y, color=f"C{i}", lw=2, marker="o", ms=4, label=name)
+    n_lines = len(curves) + len(points or {})
     for k, (name, value) in enumerate((baselines or {}).items()):
-        ax.axhline(value, color=f"C{k + len(curves)}", ls="--", lw=1.5, label=f"{name} ({value:.1f})")
+        ax.axhline(value, color=f"C{k + n_lines}", ls="--", lw=1.5, label=f"{name} ({value:.1f})")
     ax.set_xlabel(xlabel)
     ax.set_ylabel("return")
     ax.set_title(title)
