@@ -6,11 +6,18 @@ published code):
 1. Stage-1 critics: Q^k_i(s, j) = o_i·q_j (+ a learned term of the pair cost, coverage and margin), k = 1, 2, mixed
    by AMIX: Q^k_tot(s, c) = MLP(ReLU(Σ_i Q^k_i(s, c_i) w_i + b)), with hyper-weights w_i from a self-attention
    hypernetwork over the free entities and a state-dependent hyper-bias b. Target copies updated by Polyak
-   averaging (τ).
+   averaging (τ). ``TAMPolicy(team_value=True)`` (not in the paper) adds Σ_{j open} g(z_j) on each task's aggregate
+   candidate supply share, cost and count (:class:`~sb3_taskalloc.common.mixers.TeamValue`): no per-entity term can
+   tell whether a candidate set covers its task.
 2. Stage-1 target: y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], with
    H(s) = Σ_i H(π_i(·|s)) over free entities (the joint entropy of the factorised policy; ``entropy_bonus="mean"``:
    its mean over the free entities, which does not grow with their number). The env reward is the
-   learning signal (the published code regressed internal select returns instead).
+   learning signal (the published code regressed internal select returns instead). ``n_steps`` > 1: r is the n-step
+   return Σ_{k<n} γ^k r_{t+k} and γ becomes γ^n (fewer at an episode end), s' the state n steps later.
+   ``reward_timing="commitment"``: r is the env's commitment reward, the profit of a task (reward − its team's
+   charges) credited in the step its committed team covers it instead of when the team arrives (corrected on arrival
+   for the decay during travel; same sum over an episode). The critics do not observe committed-but-unpaid tasks, so
+   a payment that arrives steps after its decision is otherwise credited to the decisions made just before it.
 3. Stage-1 critic loss: ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²; actor loss: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j))
    (the paper's L_actor and L_critic with the true entropy and the expectation over actions, as in discrete SAC).
    Both losses use the same critic values, computed once before either network steps (as in the original SAC
@@ -33,7 +40,10 @@ published code):
    waste and unit cost (pair cost per unit of remaining demand covered), weighed linearly. The select critics
    add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
 7. Scores are divided by √d in the actor (paper) and not in the critics. Inputs are symlog-normalised.
-8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks.
+8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks (``warmup_exploration="uniform"``),
+   or samples of the policy itself (``"policy"``: with ``heuristic_init``, the cost-greedy rules), whose transitions
+   resemble the deployed behaviour; on RBF uniform decisions send entities across the grid and score about a tenth
+   of the rule.
 9. Ablations are policy kwargs: ``preassign=False, task_order="sequential"|"random"`` (W/o Pre),
    ``encoder="mlp"`` (W/o TAM), ``mixer="global"`` (W/o AMIX): each names a component of the policy. Without
    pre-assignment, abandoned picks return to the pool.
