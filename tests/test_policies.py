@@ -365,3 +365,25 @@ def test_pointer_scores_equal_their_definition(state_value):
     assert len(fast_grads) == len(ref_grads) == len(list(head.parameters()))
     for a, b in zip(fast_grads, ref_grads, strict=True):
         th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_logit_scale_multiplies_the_pre_assign_logits():
+    """``logit_scale`` κ: the pre-assign logits are κ times the scores, the argmax is unchanged, sampling is sharper;
+    a non-positive κ is refused."""
+    env = gym.make("TaskAlloc/RBF-v0")
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 4)))
+    th.manual_seed(0)
+    plain = make_policy(env)
+    th.manual_seed(0)
+    sharp = make_policy(env, logit_scale=50.0)
+    assert plain.actor is not None and sharp.actor is not None
+    d1, d50 = plain.actor(view), sharp.actor(view)
+    free = view.assignable
+    th.testing.assert_close(
+        d50.logits[free].masked_fill(~view.valid[free], 0), 50 * d1.logits[free].masked_fill(~view.valid[free], 0)
+    )
+    assert th.equal(d1.get_actions(True)[free], d50.get_actions(True)[free])
+    assert d50.entropy()[free].mean() < d1.entropy()[free].mean()
+    for bad in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="logit_scale"):
+            make_policy(env, logit_scale=bad)

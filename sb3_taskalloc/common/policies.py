@@ -26,20 +26,23 @@ class PreAssignActor(nn.Module):
 
     :param scorer: a :class:`~sb3_taskalloc.common.torch_layers.PairScorer` (TAM) or
         :class:`~sb3_taskalloc.common.torch_layers.FlatScorer` (W/o TAM)
+    :param logit_scale: κ, the logits are κ·s_ij: the inverse temperature of the policy, a constant
     """
 
     optimizer: th.optim.Optimizer
 
-    def __init__(self, scorer: nn.Module) -> None:
+    def __init__(self, scorer: nn.Module, logit_scale: float = 1.0) -> None:
         super().__init__()
         self.scorer = scorer
+        self.logit_scale = logit_scale
 
     @property
     def size_agnostic(self) -> bool:
         return bool(self.scorer.size_agnostic)
 
     def forward(self, view: ObsView) -> MaskedCategorical:
-        return MaskedCategorical(self.scorer(view), view.valid)
+        scores = self.scorer(view)
+        return MaskedCategorical(scores if self.logit_scale == 1.0 else scores * self.logit_scale, view.valid)
 
 
 class AMIXContext(NamedTuple):

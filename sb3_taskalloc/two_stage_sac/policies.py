@@ -63,6 +63,10 @@ class TAMPolicy(BasePolicy):
     :param team_value: add the per-task value of the teams an assignment sends to the AMIX critic
         (:class:`~sb3_taskalloc.common.mixers.TeamValue`, not in the paper): the critic then sees whether a candidate set
         covers its task. ``False``: the paper's critic
+    :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (not in the paper, where κ = 1): the
+        inverse temperature of the pre-assignment. Pair costs of one entity differ by a few percent between tasks, so
+        with κ = 1 the cost-greedy rule samples nearly uniform tasks; a larger κ keeps the sampled behaviour near the
+        deployed argmax, and since gradient steps move the scores, learning changes the logits κ times faster
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -93,6 +97,7 @@ class TAMPolicy(BasePolicy):
         monotonic_mixer: bool = False,
         hyper_bias: bool = True,
         team_value: bool = False,
+        logit_scale: float = 1.0,
         n_critics: int = 2,
         heuristic_init: bool = True,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -134,6 +139,9 @@ class TAMPolicy(BasePolicy):
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
         self.team_value = team_value
+        if not (isinstance(logit_scale, int | float) and math.isfinite(logit_scale) and logit_scale > 0):
+            raise ValueError(f"logit_scale must be a finite number > 0, got {logit_scale!r}")
+        self.logit_scale = float(logit_scale)
         self.n_critics = n_critics
         self.heuristic_init = heuristic_init
         self.activation_fn = activation_fn
@@ -189,7 +197,7 @@ class TAMPolicy(BasePolicy):
         lr = lr_schedule(1)
         self.actor = self.critic = self.critic_target = None
         if self.preassign:
-            self.actor = PreAssignActor(self._scorer(scale=math.sqrt(self.hidden_dim)))
+            self.actor = PreAssignActor(self._scorer(scale=math.sqrt(self.hidden_dim)), self.logit_scale)
             self.actor.optimizer = self._make_optimizer(self.actor, lr)
             self.critic = self._make_critic()
             self.critic.optimizer = self._make_optimizer(self.critic, lr)
@@ -260,6 +268,7 @@ class TAMPolicy(BasePolicy):
                 monotonic_mixer=self.monotonic_mixer,
                 hyper_bias=self.hyper_bias,
                 team_value=self.team_value,
+                logit_scale=self.logit_scale,
                 n_critics=self.n_critics,
                 heuristic_init=self.heuristic_init,
                 activation_fn=self.activation_fn,
