@@ -252,3 +252,12 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
+    # Other algorithm settings train again but share the baselines, computed once per seed.
+    monkeypatch.undo()
+    monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
+    monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("a baseline was run again"))
+    other = learn.LearnRun(
+        "EPT", seeds=1, steps=10, eval_episodes=2, eval_every=5, algo_kwargs={**kwargs, "tau": 0.02},
+        planners=("GeneticAlgorithm",), out=tmp_path,
+    )  # fmt: skip
+    assert other.run_seed(0)["MILP"] == data["seeds"][0]["MILP"]

@@ -10,7 +10,9 @@ on the same held-out episodes per seed (reset seeds ``10_000 + 100·seed + k``, 
 
 During training the deterministic return is measured every ``--eval-every`` steps on two held-out episodes (the
 curve). Each finished seed is saved to ``<out>/<env>/seed_<k>.json`` under a digest of the settings and skipped when
-the command is run again: an interrupted run loses at most the seed in progress. The summary goes to ``<out>/<env>.md``,
+the command is run again: an interrupted run loses at most the seed in progress. The baselines do not depend on the
+algorithm's settings: they are saved per seed under a digest of the env and their own budgets, computed once and shared
+by every run with the same ``--out``. The summary goes to ``<out>/<env>.md``,
 ``.json`` and ``.png``.
 """
 
@@ -123,7 +125,6 @@ class LearnRun:
         if path.exists():
             return json.loads(path.read_text())
         from sb3_taskalloc import TwoStageSAC
-        from sb3_taskalloc import baselines as b
         from sb3_taskalloc.experiments.diagnose import diagnose
 
         seeds = eval_seeds(seed, self.eval_episodes)
@@ -137,18 +138,37 @@ class LearnRun:
         record["curve"] = curve.points
         diagnosis = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
         record.update(q_corr=diagnosis.q_corr, q_scale=diagnosis.q_scale, sampled=diagnosis.sampled_return)
-        record["Greedy"] = episode_returns(b.GreedyAllocator(), self.env_id, seeds)
-        record["MILP"] = episode_returns(b.MILPAllocator(time_limit=self.milp_time_limit), self.env_id, seeds)
+        record.update(self.baselines(seed))
+        model.save(path.with_suffix(".zip"))
+        atomic_write_text(path, json.dumps(record) + "\n")
+        return record
+
+    def baselines(self, seed: int) -> dict[str, list[float]]:
+        """Greedy, the per-step MILP and the planners on seed ``seed``'s evaluation episodes. They depend on the env,
+        the episodes and their own budgets only, so they are filed under a digest of those and shared by every run of
+        the algorithm's settings (each is computed once)."""
+        from sb3_taskalloc import baselines as b
+
+        seeds = eval_seeds(seed, self.eval_episodes)
+        key = config_key(env_settings(self.env_id), seeds, self.milp_time_limit, PLANNER_BUDGET)
+        path = Path(self.out) / self.env / f"baselines_seed_{seed}_{key}.json"
+        done: dict[str, list[float]] = json.loads(path.read_text()) if path.exists() else {}
+        agents: dict[str, Callable[[], list[float]]] = {
+            "Greedy": lambda: episode_returns(b.GreedyAllocator(), self.env_id, seeds),
+            "MILP": lambda: episode_returns(b.MILPAllocator(time_limit=self.milp_time_limit), self.env_id, seeds),
+        }
         for name in self.planners:
             cls = getattr(b, name)
 
             def planner(env: gym.Env, cls: Any = cls) -> Any:
                 return cls(env, seed=seed, **PLANNER_BUDGET)
 
-            record[name] = episode_returns(None, self.env_id, seeds, planner)
-        model.save(path.with_suffix(".zip"))
-        atomic_write_text(path, json.dumps(record) + "\n")
-        return record
+            agents[name] = lambda planner=planner: episode_returns(None, self.env_id, seeds, planner)  # type: ignore[misc]
+        for name, run in agents.items():
+            if name not in done:
+                done[name] = run()
+                atomic_write_text(path, json.dumps(done) + "\n")
+        return {name: done[name] for name in agents}
 
     def run(self, progress: bool = True) -> Path:
         """Every seed (resuming), then the summary; :return: the Markdown path."""
