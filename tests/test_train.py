@@ -557,3 +557,49 @@ def test_team_value_closed_form_and_gradient():
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"team_value": True}, device="cpu")
     assert all(isinstance(q.team, TeamValue) for q in model.critic.q_networks)
     assert TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"team_value": False}).critic.q_networks[0].team is None
+
+
+def test_round_profit_is_the_commitment_reward():
+    """The profit that the one-step improvement term reads from the observation is what the env credits when the teams
+    commit (RBF's first step: no decay yet)."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu")
+    env = gym.make("TaskAlloc/RBF-v0")
+    for seed in range(3):
+        obs, _ = env.reset(seed=seed)
+        view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
+        decision = model.policy.decide(view, deterministic=True)
+        c = th.where(view.assignable, model.actor(view).get_actions(True), -1)
+        profit = float(losses.round_profit(model.selector.head, view, c)[0])
+        _, _, _, _, info = env.step(decision.env_action[0].numpy())
+        assert profit == pytest.approx(info["commitment_reward"], abs=1e-4) and profit != 0.0
+
+
+def test_preassign_profit_loss_closed_form():
+    """Moving every free entity: the loss is −mean_i Σ_j π_i(j) A_ij / σ_A with A_ij = P(c^{i→j}) − P(c), computed here
+    one variant at a time."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/Almighty-v0")
+    obs, _ = env.reset(seed=0)
+    view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
+    dist = model.actor(view)
+    head = model.selector.head
+    N, M = view.pair_cost.shape[1:]
+    loss = losses.preassign_profit_loss(dist, head, view, n_entities=N)
+    with th.no_grad():
+        c = th.where(view.assignable, dist.get_actions(True), -1)
+        base = float(losses.round_profit(head, view, c)[0])
+        adv = th.zeros(N, M)
+        for i in th.nonzero(view.assignable[0]).flatten().tolist():
+            for j in th.nonzero(view.valid[0, i]).flatten().tolist():
+                moved = c.clone()
+                moved[0, i] = j
+                adv[i, j] = float(losses.round_profit(head, view, moved)[0]) - base
+        valid = view.valid[0] & view.assignable[0].unsqueeze(-1)
+        free = view.assignable[0]
+        expected = -(dist.probs[0] * adv / adv[valid].std()).sum(-1)[free].mean()
+    assert adv.abs().sum() > 0  # some move changes the profit
+    th.testing.assert_close(loss.detach(), expected, atol=1e-5, rtol=1e-5)
+    loss.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.actor.parameters())
+    with pytest.raises(ValueError, match="profit_coef"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", profit_coef=-1.0)

@@ -67,6 +67,13 @@ published code):
    dot products apply the entity MLP's last layer to the task embeddings instead, h_i·g_j = z_i·(Wᵀg_j) + b·g_j
    (``TAMEncoder.dot``), and the layers that read the raw features reorder their weight-gradient product
    (``NarrowLinear``): the same values and gradients up to rounding, at less cost on a CPU.
+14. Exact one-step improvement (``profit_coef`` λ, not in the paper): the step's profit P(c) of a pre-assignment c is
+   computable from the observation (decode the teams deterministically, sum r_j − Σ pair costs over the kept tasks:
+   the commitment reward before decay). For a few random free entities i of each state the term moves i from its
+   argmax task to every open task j, everyone else at the argmax c, and adds λ·(−Σ_j π_i(j|s) A_ij / σ_A),
+   A_ij = P(c^{i→j}) − P(c), to the actor loss: a coordinate-wise improvement of the deployed pre-assignment on the
+   step's profit (what the per-step MILP maximises exactly), which needs neither sampling nor a critic. The critics'
+   term keeps what comes after the step (entities tied up travelling, tasks left for later).
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

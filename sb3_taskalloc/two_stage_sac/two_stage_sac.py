@@ -79,6 +79,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ = the actor at initialisation (a
         frozen copy in the policy): learning departs from the initial rule only where the critics' values outweigh it
     :param select_prior_coef: the same weight β_s for the pointer (select stage)
+    :param profit_coef: weight λ of the exact one-step improvement term in the pre-assign actor's loss (implementation
+        detail 14, not in the paper; 0: off): moving single entities to other tasks and decoding the teams again gives
+        the change of the step's profit without the critics
+    :param profit_entities: entities moved per state by that term
+    :param profit_batch_size: rows of each minibatch used by that term (each costs ``profit_entities`` × M decodes)
     :param target_update_interval: target network update interval (gradient steps)
     :param select_batch_size: rows of each minibatch used by the select stage (each row holds up to M × team-size
         transitions, so a few rows suffice; the decoding loop is the costly part of a gradient step)
@@ -125,6 +130,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         actor_warmup: int = 0,
         prior_coef: float = 10.0,
         select_prior_coef: float = 3.0,
+        profit_coef: float = 0.0,
+        profit_entities: int = 4,
+        profit_batch_size: int = 4,
         target_update_interval: int = 1,
         select_batch_size: int = 16,
         stats_window_size: int = 100,
@@ -164,6 +172,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "batch_size": batch_size,
             "target_update_interval": target_update_interval,
             "select_batch_size": select_batch_size,
+            "profit_batch_size": profit_batch_size,
         }
         if not (isinstance(n_steps, int) and n_steps >= 1):
             raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
@@ -191,6 +200,13 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         for name, coef in (("prior_coef", prior_coef), ("select_prior_coef", select_prior_coef)):
             if not coef >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {coef!r}")
+        if not (math.isfinite(profit_coef) and profit_coef >= 0.0):
+            raise ValueError(f"profit_coef must be a finite number >= 0, got {profit_coef!r}")
+        if not (isinstance(profit_entities, int) and profit_entities >= 1):
+            raise ValueError(f"profit_entities must be a positive integer, got {profit_entities!r}")
+        self.profit_coef = float(profit_coef)
+        self.profit_entities = profit_entities
+        self.profit_batch_size = profit_batch_size
         self.prior_coef = float(prior_coef)
         self.select_prior_coef = float(select_prior_coef)
         self.target_update_interval = target_update_interval
@@ -349,6 +365,14 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                         self.entropy_bonus == "mean",
                     )
                     logs["actor_loss"].append(actor_loss.item())
+                    # Exact one-step improvement on the first rows (detail 14): each costs profit_entities × M decodes.
+                    if self.profit_coef > 0:
+                        rows_view = ObsView(*(x[: self.profit_batch_size] for x in obs))
+                        profit = losses.preassign_profit_loss(
+                            self.actor(rows_view), self.selector.head, rows_view, self.profit_entities
+                        )
+                        logs["profit_loss"].append(profit.item())
+                        actor_loss = actor_loss + self.profit_coef * profit
                     # Disjoint parameters: one backward pass gives each network its own gradient.
                     self.critic.optimizer.zero_grad()
                     self.actor.optimizer.zero_grad()
