@@ -257,7 +257,14 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
     monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("a baseline was run again"))
     other = learn.LearnRun(
-        "EPT", seeds=1, steps=10, eval_episodes=2, eval_every=5, algo_kwargs={**kwargs, "tau": 0.02},
-        planners=("GeneticAlgorithm",), out=tmp_path,
+        "EPT", seeds=2, steps=10, eval_episodes=2, eval_every=5, algo_kwargs={**kwargs, "tau": 0.02}, planners=(),
+        out=tmp_path / "other",
     )  # fmt: skip
+    for name in tmp_path.glob("EPT/baselines_*.json"):  # the same episodes and budgets: the same files
+        (tmp_path / "other" / "EPT").mkdir(parents=True, exist_ok=True)
+        (tmp_path / "other" / "EPT" / name.name).write_text(name.read_text())
     assert other.run_seed(0)["MILP"] == data["seeds"][0]["MILP"]
+    # Seeds in worker processes (jobs=2): seed 0 is read back, seed 1 trains in a worker.
+    monkeypatch.undo()
+    summary = json.loads(other.run(progress=False, jobs=2).with_suffix(".json").read_text())
+    assert [r["seed"] for r in summary["seeds"]] == [0, 1] and summary["seeds"][1]["MILP"] == data["seeds"][1]["MILP"]

@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
     learn.add_argument("--algo-kwargs", type=_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
     learn.add_argument("--out", default="results/learn")
+    learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
     args = parser.parse_args(argv)
 
     import torch as th
@@ -57,15 +58,15 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "learn":
         from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
 
-        if min(args.seeds, args.steps, args.eval_episodes, args.eval_every) < 1:
-            parser.error("--seeds, --steps, --eval-episodes and --eval-every must be >= 1")
+        if min(args.seeds, args.steps, args.eval_episodes, args.eval_every, args.jobs) < 1:
+            parser.error("--seeds, --steps, --eval-episodes, --eval-every and --jobs must be >= 1")
         planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
         unknown = set(planners) - set(PLANNERS)
         if unknown:
             parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
         run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                        out=args.out)  # fmt: skip
-        path = run.run()
+        path = run.run(jobs=args.jobs)
         print(path.read_text())
         print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
         return

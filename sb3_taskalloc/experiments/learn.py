@@ -60,6 +60,15 @@ def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable
     return returns
 
 
+def _one_thread() -> None:
+    """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered."""
+    import torch as th
+
+    import envs  # noqa: F401
+
+    th.set_num_threads(1)
+
+
 class Curve(BaseCallback):
     """Deterministic return on held-out episodes every ``every`` env steps (and at step 0)."""
 
@@ -170,11 +179,32 @@ class LearnRun:
                 atomic_write_text(path, json.dumps(done) + "\n")
         return {name: done[name] for name in agents}
 
-    def run(self, progress: bool = True) -> Path:
-        """Every seed (resuming), then the summary; :return: the Markdown path."""
+    def run(self, progress: bool = True, jobs: int = 1) -> Path:
+        """Every seed (resuming), then the summary; :return: the Markdown path.
+
+        :param jobs: seeds run at once, each in its own process with one torch thread (each seed is saved as it
+            finishes, so an interrupted run keeps the finished ones)
+        """
         from tqdm.auto import tqdm
 
-        records = [self.run_seed(s) for s in tqdm(range(self.seeds), desc=f"{self.env} learning", disable=not progress)]
+        bar = tqdm(total=self.seeds, desc=f"{self.env} learning", disable=not progress)
+        if jobs == 1:
+            records = []
+            for seed in range(self.seeds):
+                records.append(self.run_seed(seed))
+                bar.update()
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            context = multiprocessing.get_context("spawn")  # fresh interpreters: no forked torch thread pools
+            with ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread) as pool:
+                futures = [pool.submit(self.run_seed, seed) for seed in range(self.seeds)]
+                records = []
+                for future in futures:
+                    records.append(future.result())
+                    bar.update()
+        bar.close()
         return self.write(records)
 
     def write(self, records: list[dict[str, Any]]) -> Path:
