@@ -361,6 +361,7 @@ class PointerHead(nn.Module):
     :param hidden_dim: width d
     :param activation_fn: MLP activation
     :param state_value: add a per-task baseline b(e_j^t) (used by the select critics)
+    :param logit_scale: κ_s, the scores are multiplied by it (the inverse temperature of the pointer actor)
     """
 
     def __init__(
@@ -370,8 +371,10 @@ class PointerHead(nn.Module):
         hidden_dim: int = 64,
         activation_fn: type[nn.Module] = nn.ReLU,
         state_value: bool = False,
+        logit_scale: float = 1.0,
     ) -> None:
         super().__init__()
+        self.logit_scale = logit_scale
         self.entity = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
         self.task = mlp(n_resources + SELECT_TASK_EXTRA, hidden_dim, hidden_dim, activation_fn)
         self.dyn = nn.Linear(SELECT_DYN, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
@@ -397,7 +400,7 @@ class PointerHead(nn.Module):
         dims); :param dyn: (..., B, N, SELECT_DYN); :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
         if self.skip_dot:
-            return self.dyn(dyn).squeeze(-1)
+            return self._scaled(self.dyn(dyn).squeeze(-1))
         e = self.task(task_state)
         lead = e.shape[:-3]
         B, M, H = e.shape[-3:]
@@ -409,4 +412,7 @@ class PointerHead(nn.Module):
         if self.value is not None:
             values = self.value(e).squeeze(-1)  # (..., B, M)
             scores = scores + th.gather(values, -1, task_of.clamp_min(0).expand(*lead, -1, -1))
-        return scores
+        return self._scaled(scores)
+
+    def _scaled(self, scores: th.Tensor) -> th.Tensor:
+        return scores if self.logit_scale == 1.0 else scores * self.logit_scale

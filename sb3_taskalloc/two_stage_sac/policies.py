@@ -67,6 +67,7 @@ class TAMPolicy(BasePolicy):
         inverse temperature of the pre-assignment. Pair costs of one entity differ by a few percent between tasks, so
         with κ = 1 the cost-greedy rule samples nearly uniform tasks; a larger κ keeps the sampled behaviour near the
         deployed argmax, and since gradient steps move the scores, learning changes the logits κ times faster
+    :param select_logit_scale: κ_s, the same for the pointer actor's logits (1: the paper's)
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -98,6 +99,7 @@ class TAMPolicy(BasePolicy):
         hyper_bias: bool = True,
         team_value: bool = False,
         logit_scale: float = 1.0,
+        select_logit_scale: float = 1.0,
         n_critics: int = 2,
         heuristic_init: bool = True,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -139,9 +141,11 @@ class TAMPolicy(BasePolicy):
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
         self.team_value = team_value
-        if not (isinstance(logit_scale, int | float) and math.isfinite(logit_scale) and logit_scale > 0):
-            raise ValueError(f"logit_scale must be a finite number > 0, got {logit_scale!r}")
+        for name, scale in (("logit_scale", logit_scale), ("select_logit_scale", select_logit_scale)):
+            if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
         self.logit_scale = float(logit_scale)
+        self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
         self.heuristic_init = heuristic_init
         self.activation_fn = activation_fn
@@ -204,7 +208,7 @@ class TAMPolicy(BasePolicy):
             self.critic_target = self._make_critic()
             self.critic_target.load_state_dict(self.critic.state_dict())
             self.critic_target.train(False)
-        self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn))
+        self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn, logit_scale=self.select_logit_scale))
         self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
@@ -269,6 +273,7 @@ class TAMPolicy(BasePolicy):
                 hyper_bias=self.hyper_bias,
                 team_value=self.team_value,
                 logit_scale=self.logit_scale,
+                select_logit_scale=self.select_logit_scale,
                 n_critics=self.n_critics,
                 heuristic_init=self.heuristic_init,
                 activation_fn=self.activation_fn,
