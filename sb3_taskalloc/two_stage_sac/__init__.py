@@ -52,7 +52,12 @@ published code):
    pointer's only the symlog unit cost (each task picks the candidate that covers its remaining demand at the
    lowest cost per unit, the rule of :class:`~sb3_taskalloc.baselines.GreedyAllocator`), and the last layer of
    both task embeddings starts at 0, so the dot-product terms start at 0 and grow by learning. Critics keep
-   PyTorch's initialisation. ``heuristic_init=False`` is the paper's random start.
+   PyTorch's initialisation. ``heuristic_init=False`` is the paper's random start. The rules' temperature is set by
+   ``logit_scale`` κ and ``select_logit_scale`` κ_s (both 1 in the paper), which multiply the actors' scores: a
+   rule's argmax does not depend on it, its samples do. On RBF one entity's pair costs differ by a few percent between
+   tasks, so at κ = 1 the sampled pre-assignment is nearly uniform: sampled episodes score 15 against 135 for the
+   argmax on the same seeds, and the critics learn the values of a behaviour that is never deployed. κ = 100,
+   κ_s = 10 bring the samples to 107 (ties between equidistant tasks stay random).
 11. Critic warm-up (``actor_warmup``): the first gradient steps train only the critics, so the actors start
    learning from critics that have seen the values of their initial rules.
 12. Prior term (``prior_coef`` β, ``select_prior_coef`` β_s; not in the paper): each actor loss adds
