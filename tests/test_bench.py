@@ -29,6 +29,11 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
     assert record["command"] == f"python -m sb3_taskalloc.bench {which} --quick --out {tmp_path}"
     assert record["torch_threads"] == 1
     rows = record["results"]
+    if which == "policy":  # first the latencies over the states of seeded episodes, then the reset-state rows
+        episodes = [row for row in rows if "states" in row]
+        assert {row["policy"] for row in episodes} == {"TAMPolicy trained", "TAMPolicy untrained", "Greedy"}
+        assert all(row["states"] >= 100 and 0 < row["median_ms"] <= row["p90_ms"] for row in episodes)
+        rows = [row for row in rows if "states" not in row]
     assert rows and all(keys <= set(row) for row in rows)
     for row in rows:
         for key in keys:

@@ -119,16 +119,86 @@ def _scaled_rbf(n_entities: int, n_tasks: int) -> Any:
     return RBFEnv(entity_rows=[i % 100 for i in range(n_entities)], max_tasks=n_tasks, arrival_count=(n_tasks, n_tasks))
 
 
+def _episode_states(agent: Any, env_id: str, seeds: list[int]) -> list[dict[str, np.ndarray]]:
+    """The observations of deterministic episodes of ``agent`` on ``env_id`` (the states a deployed policy meets)."""
+    import gymnasium as gym
+
+    states = []
+    for seed in seeds:
+        env = gym.make(env_id)
+        obs, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            states.append(obs)
+            obs, _, terminated, truncated, _ = env.step(agent.predict(obs, deterministic=True)[0])
+            done = terminated or truncated
+    return states
+
+
+def _state_latencies_ms(agent: Any, states: list[dict[str, np.ndarray]], device: str = "cpu") -> np.ndarray:
+    """Wall time of one ``predict`` per state, in ms (after 3 warm-up calls)."""
+    for obs in states[:3]:
+        agent.predict(obs, deterministic=True)
+    times = []
+    for obs in states:
+        t0 = time.perf_counter()
+        agent.predict(obs, deterministic=True)
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return np.asarray(times) * 1e3
+
+
+def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[dict[str, Any]]:
+    """Decision latency over the states of seeded RBF episodes (median and p90) of a trained model (``--model``, or
+    TwoStageSAC trained here for ``--train-steps`` at the defaults) and of the same policy untrained, with Greedy for
+    reference: a reset state has more free entities and fewer open tasks than the states of an episode."""
+    import gymnasium as gym
+    import torch as th
+
+    import envs  # noqa: F401
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.baselines import GreedyAllocator
+
+    env_id = "TaskAlloc/RBF-v0"
+    seeds = [30_000] if args.quick else [30_000, 30_001, 30_002]
+    if args.model:
+        trained = TwoStageSAC.load(args.model, device="cpu")
+        source = args.model
+    else:
+        steps = args.train_steps or (100 if args.quick else 3000)
+        trained = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
+        trained.learn(steps)
+        source = f"trained here, {steps} steps at the defaults"
+    th.manual_seed(0)
+    untrained = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
+    states = _episode_states(trained, env_id, seeds)
+    rows = []
+    for device in devices:
+        for name, agent in (("trained", trained), ("untrained", untrained)):
+            agent.policy.to(device)
+            agent.device = th.device(device)
+            ms = _state_latencies_ms(agent, states, device)
+            rows.append(
+                {"device": device, "policy": f"TAMPolicy {name}", "states": len(states), "median_ms": float(np.median(ms)),
+                 "p90_ms": float(np.percentile(ms, 90)), "model": source if name == "trained" else None,
+                 "target": "median <= 5 ms, p90 <= 10 ms (CPU)"}
+            )  # fmt: skip
+    ms = _state_latencies_ms(GreedyAllocator(), states)
+    rows.append({"device": "cpu", "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
+                 "p90_ms": float(np.percentile(ms, 90))})  # fmt: skip
+    return rows
+
+
 def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """TAMPolicy decision latency: one RBF observation, a batch of 256, and the N × M scaling table (CPU; CUDA when
-    available)."""
+    """TAMPolicy decision latency: over the states of seeded RBF episodes (:func:`bench_policy_episodes`), then on one
+    reset RBF observation, a batch of 256, and the N × M scaling table of reset states (CPU; CUDA when available)."""
     import torch as th
     from stable_baselines3.common.utils import obs_as_tensor
 
     from sb3_taskalloc import TAMPolicy
 
     devices = _devices(args)
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, Any]] = bench_policy_episodes(args, devices)
     sizes = [(100, 10)] + [(n, m) for n in (50, 100, 500, 1000) for m in (5, 10, 50)]
     if args.quick:
         sizes = [(100, 10), (50, 5)]
@@ -361,6 +431,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
     parser.add_argument("--out", default="bench_out", help="folder for the JSON results")
     parser.add_argument("--quick", action="store_true", help="shorter timings (smoke runs)")
+    parser.add_argument("--model", default=None, help="policy benchmark: a trained TwoStageSAC for the episode states")
+    parser.add_argument(
+        "--train-steps",
+        type=int,
+        default=None,
+        help="policy benchmark without --model: steps to train one first (default 3,000; 100 with --quick)",
+    )
     parser.add_argument(
         "--device",
         default="auto",
