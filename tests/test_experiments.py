@@ -257,7 +257,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
     monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("a baseline was run again"))
     other = learn.LearnRun(
-        "EPT", seeds=2, steps=10, eval_episodes=2, eval_every=5, algo_kwargs={**kwargs, "tau": 0.02}, planners=(),
+        "EPT", seeds=2, steps=10, eval_episodes=2, eval_every=5, algo_kwargs={**kwargs, "n_envs": 2}, planners=(),
         out=tmp_path / "other",
     )  # fmt: skip
     for name in tmp_path.glob("EPT/baselines_*.json"):  # the same episodes and budgets: the same files
@@ -268,3 +268,5 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     monkeypatch.undo()
     summary = json.loads(other.run(progress=False, jobs=2).with_suffix(".json").read_text())
     assert [r["seed"] for r in summary["seeds"]] == [0, 1] and summary["seeds"][1]["MILP"] == data["seeds"][1]["MILP"]
+    # n_envs = 2 (vectorised collection): the step count passes 5 at 6, and the curve is measured there.
+    assert all([p[0] for p in r["curve"]] == [0, 6, 10] for r in summary["seeds"])

@@ -28,6 +28,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, zoo_hyperparameters
@@ -81,7 +82,8 @@ class Curve(BaseCallback):
         self.points.append((0, float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))))
 
     def _on_step(self) -> bool:
-        if self.num_timesteps % self.every == 0:
+        # With n_envs envs the step count grows by n_envs per call: evaluate on passing each multiple of `every`.
+        if self.num_timesteps // self.every > (self.num_timesteps - self.training_env.num_envs) // self.every:
             self.points.append((self.num_timesteps, float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))))
         return True
 
@@ -137,7 +139,10 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import diagnose
 
         seeds = eval_seeds(seed, self.eval_episodes)
-        model = TwoStageSAC("TAMPolicy", self.env_id, seed=seed, device="cpu", **self.hyperparameters)
+        hyperparameters = dict(self.hyperparameters)
+        n_envs = int(hyperparameters.pop("n_envs", 1))  # vectorised collection: a VecEnv of n_envs copies (zoo's key)
+        env = make_vec_env(self.env_id, n_envs=n_envs, seed=seed) if n_envs > 1 else self.env_id
+        model = TwoStageSAC("TAMPolicy", env, seed=seed, device="cpu", **hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
         curve = Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
         t0 = time.perf_counter()
