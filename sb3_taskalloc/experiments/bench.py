@@ -227,11 +227,14 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per env step (the median of three
-    blocks of ``learn``, each block recorded), split into the gradient step and the stochastic decision; replay memory;
-    and the gradient step on RBF scaled to fewer entities (what a step costs apart from the entity count). On CUDA, also
-    the GPU kernel time and the kernel launches per gradient step (``torch.profiler``; ``None`` on the CPU)."""
+    """TwoStageSAC training throughput: env steps/s with one gradient step (batch 64) per collection step (the median of
+    three blocks of ``learn``, each block recorded; one env, and on RBF also ``n_envs=8``, where one step collects 8
+    transitions with one batched decision) and the minutes that rate needs for 100,000 env steps; the gradient step
+    and the stochastic decision timed apart; replay memory; and the gradient step on RBF scaled to fewer entities (what
+    a step costs apart from the entity count). On CUDA, also the GPU kernel time and the kernel launches per gradient
+    step (``torch.profiler``; ``None`` on the CPU)."""
     import gymnasium as gym
+    from stable_baselines3.common.env_util import make_vec_env
 
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
@@ -274,6 +277,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             "env": env,
             "env_steps_per_s": rate,
             "env_steps_per_s_blocks": [round(r, 2) for r in rates],
+            "minutes_to_100k_steps": 1e5 / rate / 60,  # extrapolated from the rate, for RBF's paper budget
             "gradient_step_ms": grad_ms,
             "gpu_kernel_ms_per_gradient_step": kernel_ms,
             "kernel_launches_per_gradient_step": launches,
@@ -294,7 +298,12 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             if args.quick and env_id != "TaskAlloc/RBF-v0":
                 continue
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
-            rows.append(measure(model, device, steps, env_id, 50 if env_id == "TaskAlloc/RBF-v0" else None))
+            rows.append(measure(model, device, steps, env_id, 60 if env_id == "TaskAlloc/RBF-v0" else None))
+            if env_id == "TaskAlloc/RBF-v0":  # vectorised collection: one batched decision for n_envs envs
+                for n_envs in () if args.quick else (8,):
+                    vec = make_vec_env(env_id, n_envs=n_envs, seed=0)
+                    model = TwoStageSAC("TAMPolicy", vec, learning_starts=64, batch_size=64, seed=0, device=device)
+                    rows.append(measure(model, device, steps * n_envs // 2, f"{env_id}, n_envs={n_envs}", 60))
         for n in () if args.quick else (10, 25, 50):
             env = gym.make("TaskAlloc/RBF-v0", entity_rows=tuple(range(n)))  # RBF-v0 with its first n entities
             model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
