@@ -250,6 +250,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
         assert [p[0] for p in record["curve"]] == [0, 5, 10]
     assert (tmp_path / "EPT.png").stat().st_size > 0
     assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
+    shifted = run.zero_shot("EPT-TaskShift").read_text()  # the saved models, untrained on another env
+    assert "| seed | untrained | trained | Greedy |" in shifted and "trained ≥ Greedy:" in shifted
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.

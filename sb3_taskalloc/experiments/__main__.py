@@ -48,6 +48,9 @@ def main(argv: list[str] | None = None) -> None:
     learn.add_argument("--algo-kwargs", type=_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
     learn.add_argument("--out", default="results/learn")
     learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
+    learn.add_argument(
+        "--zero-shot", default=None, metavar="ENV", help="then run the trained models on ENV (e.g. RBF-EntityShift) untrained"
+    )
     args = parser.parse_args(argv)
 
     import torch as th
@@ -69,6 +72,10 @@ def main(argv: list[str] | None = None) -> None:
         path = run.run(jobs=args.jobs)
         print(path.read_text())
         print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
+        if args.zero_shot:
+            shifted = run.zero_shot(args.zero_shot)
+            print(shifted.read_text())
+            print(f"wrote {shifted}, {shifted.with_suffix('.json')}")
         return
     if args.command == "diagnose":
         _diagnose(parser, args)

@@ -264,6 +264,47 @@ class LearnRun:
         ]
         return lines
 
+    def zero_shot(self, shift: str) -> Path:
+        """Each finished seed's trained model on another env without training (``shift``, e.g. ``"RBF-EntityShift"``),
+        against the same policy untrained and Greedy on that env's held-out episodes of the seed; writes
+        ``<out>/<env>_zero_shot_<shift>.md`` and ``.json``. :return: the Markdown path."""
+        from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc import baselines as b
+
+        shift_id = f"TaskAlloc/{shift}-v0"
+        rows: list[dict[str, Any]] = []
+        for seed in range(self.seeds):
+            path = self.seed_path(seed).with_suffix(".zip")
+            if not path.exists():
+                raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
+            seeds = eval_seeds(seed, self.eval_episodes)
+            trained = TwoStageSAC.load(path, env=gym.make(shift_id), device="cpu")
+            untrained = TwoStageSAC("TAMPolicy", shift_id, seed=seed, device="cpu", policy_kwargs=trained.policy_kwargs)
+            rows.append(
+                {"seed": seed, "trained": episode_returns(trained, shift_id, seeds),
+                 "untrained": episode_returns(untrained, shift_id, seeds),
+                 "Greedy": episode_returns(b.GreedyAllocator(), shift_id, seeds)}
+            )  # fmt: skip
+        stem = Path(self.out) / f"{self.env}_zero_shot_{shift}"
+        atomic_write_text(
+            stem.with_suffix(".json"), json.dumps({"settings": self.describe(), "shift": shift_id, "seeds": rows})
+        )
+        columns = ("untrained", "trained", "Greedy")
+        means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
+        lines = [
+            f"# {shift_id}: zero-shot, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
+            "",
+            f"Command: `{self.command()} --zero-shot {shift}`",
+            "",
+            "| seed | " + " | ".join(columns) + " |",
+            "|---" * (len(columns) + 1) + "|",
+            *(f"| {r['seed']} | " + " | ".join(f"{means[c][k]:.1f}" for c in columns) + " |" for k, r in enumerate(rows)),
+            "| mean ± std | " + " | ".join(f"{means[c].mean():.1f} ± {means[c].std():.1f}" for c in columns) + " |",
+            "",
+            f"- trained ≥ Greedy: {int((means['trained'] >= means['Greedy']).sum())} of {len(rows)} seeds (target all)",
+        ]
+        return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+
     def describe(self) -> dict[str, Any]:
         return {
             "env": self.env_id,
