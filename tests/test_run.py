@@ -184,3 +184,34 @@ def test_bad_budget_is_named(steps):
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs={"hidden_dim": 16})
     with pytest.raises(ValueError, match="total_timesteps must be a non-negative integer"):
         model.learn(steps)
+
+
+def test_batched_decisions_equal_per_env_decisions():
+    """Vectorised collection decides for all envs in one batched pass: deterministic decisions of a batch equal the
+    decisions for each observation alone."""
+    env = make_vec_env("TaskAlloc/RBF-v0", n_envs=4, seed=3)
+    model = TwoStageSAC("TAMPolicy", env, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    obs = env.reset()
+    for _ in range(3):
+        batched, _ = model.predict(obs, deterministic=True)
+        alone = np.stack([model.predict({k: v[i] for k, v in obs.items()}, deterministic=True)[0] for i in range(4)])
+        assert np.array_equal(batched, alone)
+        obs, *_ = env.step(batched)
+    env.close()
+
+
+def test_n_envs_save_load_resume(tmp_path):
+    """With n_envs > 1: save, load with a VecEnv of the same size, and resume counting steps; the replay buffer keeps
+    its per-env layout."""
+    env = make_vec_env("TaskAlloc/EPT-v0", n_envs=2, seed=0)
+    model = TwoStageSAC("TAMPolicy", env, learning_starts=6, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8})
+    model.learn(12)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+    loaded = TwoStageSAC.load(tmp_path / "model", env=make_vec_env("TaskAlloc/EPT-v0", n_envs=2, seed=1), device="cpu")
+    loaded.load_replay_buffer(tmp_path / "buffer")
+    assert loaded.replay_buffer.n_envs == 2 and loaded.replay_buffer.size() == model.replay_buffer.size()
+    loaded.learn(8, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 20
+    obs = loaded.get_env().reset()
+    assert loaded.predict(obs, deterministic=True)[0].shape == (2, env.action_space.shape[0])
