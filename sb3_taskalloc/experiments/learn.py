@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -190,26 +190,20 @@ class LearnRun:
         :param jobs: seeds run at once, each in its own process with one torch thread (each seed is saved as it
             finishes, so an interrupted run keeps the finished ones)
         """
+        from contextlib import ExitStack
+
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=self.seeds, desc=f"{self.env} learning", disable=not progress)
-        if jobs == 1:
-            records = []
-            for seed in range(self.seeds):
-                records.append(self.run_seed(seed))
-                bar.update()
-        else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
+        with ExitStack() as stack:
+            results: Iterable[dict[str, Any]] = map(self.run_seed, range(self.seeds))
+            if jobs > 1:
+                import multiprocessing
+                from concurrent.futures import ProcessPoolExecutor
 
-            context = multiprocessing.get_context("spawn")  # fresh interpreters: no forked torch thread pools
-            with ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread) as pool:
-                futures = [pool.submit(self.run_seed, seed) for seed in range(self.seeds)]
-                records = []
-                for future in futures:
-                    records.append(future.result())
-                    bar.update()
-        bar.close()
+                context = multiprocessing.get_context("spawn")  # fresh interpreters: no forked torch thread pools
+                pool = stack.enter_context(ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread))
+                results = pool.map(self.run_seed, range(self.seeds))
+            records = list(tqdm(results, total=self.seeds, desc=f"{self.env} learning", disable=not progress))
         return self.write(records)
 
     def write(self, records: list[dict[str, Any]]) -> Path:

@@ -21,6 +21,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 
 import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
+from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
 from sb3_taskalloc.common.torch_layers import ObsView
@@ -172,27 +173,29 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "batch_size": batch_size,
             "target_update_interval": target_update_interval,
             "select_batch_size": select_batch_size,
+            "n_steps": n_steps,
+            "profit_entities": profit_entities,
             "profit_batch_size": profit_batch_size,
         }
-        if not (isinstance(n_steps, int) and n_steps >= 1):
-            raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
-        self.n_steps = n_steps
-        if n_steps > 1:
-            self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "n_steps": n_steps, "gamma": gamma}
         for name, count in counts.items():
             if not (isinstance(count, int) and count >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {count!r}")
+        choices = {
+            "reward_timing": (reward_timing, ("completion", "commitment")),
+            "entropy_bonus": (entropy_bonus, ("sum", "mean")),
+            "warmup_exploration": (warmup_exploration, ("uniform", "policy")),
+        }
+        for name, (value, allowed) in choices.items():
+            if value not in allowed:
+                raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
+        self.n_steps = n_steps
+        if n_steps > 1:
+            self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "n_steps": n_steps, "gamma": gamma}
         self.ent_coef = ent_coef
         self.select_ent_coef = select_ent_coef
         self.target_entropy_ratio = target_entropy_ratio
-        if reward_timing not in ("completion", "commitment"):
-            raise ValueError(f"reward_timing must be 'completion' or 'commitment', got {reward_timing!r}")
         self.reward_timing = reward_timing
-        if entropy_bonus not in ("sum", "mean"):
-            raise ValueError(f"entropy_bonus must be 'sum' or 'mean', got {entropy_bonus!r}")
         self.entropy_bonus = entropy_bonus
-        if warmup_exploration not in ("uniform", "policy"):
-            raise ValueError(f"warmup_exploration must be 'uniform' or 'policy', got {warmup_exploration!r}")
         self.warmup_exploration = warmup_exploration
         if actor_warmup < 0:
             raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
@@ -202,8 +205,6 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 raise ValueError(f"{name} must be >= 0, got {coef!r}")
         if not (math.isfinite(profit_coef) and profit_coef >= 0.0):
             raise ValueError(f"profit_coef must be a finite number >= 0, got {profit_coef!r}")
-        if not (isinstance(profit_entities, int) and profit_entities >= 1):
-            raise ValueError(f"profit_entities must be a positive integer, got {profit_entities!r}")
         self.profit_coef = float(profit_coef)
         self.profit_entities = profit_entities
         self.profit_batch_size = profit_batch_size
@@ -367,10 +368,10 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     logs["actor_loss"].append(actor_loss.item())
                     # Exact one-step improvement on the first rows (detail 14): each costs profit_entities × M decodes.
                     if self.profit_coef > 0:
-                        rows_view = ObsView(*(x[: self.profit_batch_size] for x in obs))
-                        profit = losses.preassign_profit_loss(
-                            self.actor(rows_view), self.selector.head, rows_view, self.profit_entities
-                        )
+                        profit_rows = slice(0, self.profit_batch_size)
+                        rows_view = ObsView(*(x[profit_rows] for x in obs))
+                        rows_dist = MaskedCategorical(dist.logits[profit_rows], rows_view.valid)  # the actor pass above
+                        profit = losses.preassign_profit_loss(rows_dist, self.selector.head, rows_view, self.profit_entities)
                         logs["profit_loss"].append(profit.item())
                         actor_loss = actor_loss + self.profit_coef * profit
                     # Disjoint parameters: one backward pass gives each network its own gradient.
