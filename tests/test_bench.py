@@ -20,6 +20,7 @@ from sb3_taskalloc.experiments import bench
         ("envs", {"env", "steps_per_s", "steps_per_s_gym_make", "deepcopy_ms", "entities"}),
         ("policy", {"device", "entities", "tasks", "predict_ms"}),
         ("train", {"device", "env", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
+        ("learn", {"device", "seed", "untrained", "target_return", "reached", "last_return", "training_s", "curve"}),
     ],
 )
 def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
@@ -46,6 +47,13 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
             # AMIX's share of a gradient step, timed alone, and the rate it and the decision would allow
             assert 0 < row["amix_ms_per_gradient_step"] < row["gradient_step_ms"]
             assert row["env_steps_per_s_bound"] == pytest.approx(1e3 / (row["decision_ms"] + row["amix_ms_per_gradient_step"]))
+    if which == "learn":  # --quick: 200 env steps, evaluated at 100 and 200 unless the target came first
+        (row,) = rows
+        assert row["target_return"] == pytest.approx(bench.LEARN_TARGET * row["untrained"])
+        steps = [point[0] for point in row["curve"]]
+        assert steps == [100, 200][: len(steps)] and row["env_steps"] == steps[-1]
+        assert row["reached"] == (row["last_return"] >= row["target_return"]) == (row["seconds_to_target"] is not None)
+        assert row["curve"][-1][1] == row["training_s"] > 0
     assert f"## {which}" in capsys.readouterr().out  # the printed table
 
 
@@ -57,6 +65,13 @@ def test_bench_device_option(tmp_path, capsys):
     if not torch.cuda.is_available():
         with pytest.raises(SystemExit, match="--device cuda: no CUDA device"):
             bench.main(["policy", "--quick", "--device", "cuda", "--out", str(tmp_path)])
+
+
+def test_bench_learn_rejects_bad_budgets(tmp_path):
+    with pytest.raises(SystemExit, match="--learn-steps and --eval-every must be >= 1, got 0 and 4000"):
+        bench.main(["learn", "--learn-steps", "0", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):  # argparse names the option
+        bench.main(["learn", "--algo-kwargs", "[1, 2]", "--out", str(tmp_path)])
 
 
 def test_table_has_every_column(capsys):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> None:
-    from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS
+    from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, yaml_mapping
 
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.experiments", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -37,7 +37,9 @@ def main(argv: list[str] | None = None) -> None:
     diag.add_argument("--episodes", type=int, default=3, help="sampled and deterministic evaluation episodes each")
     diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
     diag.add_argument("--out", default="results/diagnose")
-    diag.add_argument("--algo-kwargs", type=_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"')
+    diag.add_argument(
+        "--algo-kwargs", type=yaml_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"'
+    )
     learn = sub.add_parser("learn", help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)")
     learn.add_argument("--env", required=True, choices=ENVS)
     learn.add_argument("--seeds", type=int, default=5)
@@ -45,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     learn.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes per seed")
     learn.add_argument("--eval-every", type=int, default=2_000, help="env steps between the curve's evaluations")
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
-    learn.add_argument("--algo-kwargs", type=_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
+    learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
     learn.add_argument("--out", default="results/learn")
     learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
     learn.add_argument(
@@ -96,15 +98,6 @@ def main(argv: list[str] | None = None) -> None:
     path = TableRun(args.env, args.seeds, args.budget, args.out, args.methods).run()
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.csv')}")
-
-
-def _mapping(text: str) -> dict:
-    import yaml
-
-    value = yaml.safe_load(text)
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"expected a YAML mapping, got {text!r}")
-    return value
 
 
 def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m sb3_taskalloc.bench {envs,policy,train,all} [--out DIR]``.
+"""Benchmarks: ``python -m sb3_taskalloc.bench {envs,policy,train,baselines,learn,all} [--out DIR]``.
 
 Each benchmark prints a table and writes ``<out>/bench_<name>.json`` with the figures, the machine and the command.
 Figures are measured with one thread (``OMP_NUM_THREADS=1``, ``torch.set_num_threads(1)``) unless stated.
@@ -27,6 +27,8 @@ if TYPE_CHECKING:
 BenchFn = Callable[[argparse.Namespace], list[dict[str, Any]]]
 #: The profiler's names of the host calls that launch a CUDA kernel.
 LAUNCH_EVENTS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx")
+#: ``bench learn`` trains until the policy returns this multiple of its untrained initialisation.
+LEARN_TARGET = 1.05
 
 
 def _machine() -> dict[str, Any]:
@@ -311,6 +313,85 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
+def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Wall-clock to a trained policy: TwoStageSAC on RBF at the zoo config (``--algo-kwargs`` over it) trains until its
+    deterministic mean return on seed k's held-out episodes (those of ``experiments learn``) reaches
+    :data:`LEARN_TARGET` × the same policy untrained on them, or ``--learn-steps`` env steps. It is evaluated every
+    ``--eval-every`` env steps; the evaluations are not counted in the time. One row per training seed and device."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.env_util import make_vec_env
+
+    import envs  # noqa: F401
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
+    from sb3_taskalloc.experiments.learn import episode_returns, eval_seeds
+
+    env_id = "TaskAlloc/RBF-v0"
+    budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
+    if budget < 1 or every < 1:
+        raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
+
+    class ToTarget(BaseCallback):
+        """Evaluates on passing each multiple of ``every`` env steps, with the training clock stopped; stops at the
+        target."""
+
+        def __init__(self, seeds: list[int], target: float) -> None:
+            super().__init__()
+            self.seeds, self.target = seeds, target
+            self.seconds, self.clock = 0.0, 0.0
+            self.curve: list[tuple[int, float, float]] = []  # (env steps, training seconds, return)
+
+        def _on_training_start(self) -> None:
+            self.clock = time.perf_counter()
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps // every == (self.num_timesteps - self.training_env.num_envs) // every:
+                return True
+            self.seconds += time.perf_counter() - self.clock
+            value = float(np.mean(episode_returns(self.model, env_id, self.seeds)))
+            self.curve.append((self.num_timesteps, round(self.seconds, 2), round(value, 2)))
+            self.clock = time.perf_counter()
+            return value < self.target
+
+        def _on_training_end(self) -> None:  # the budget ran out between two evaluations: evaluate where it stopped
+            if not self.curve or self.curve[-1][0] < self.num_timesteps:
+                self.seconds += time.perf_counter() - self.clock
+                value = float(np.mean(episode_returns(self.model, env_id, self.seeds)))
+                self.curve.append((self.num_timesteps, round(self.seconds, 2), round(value, 2)))
+
+    hyperparameters = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
+    n_envs = int(hyperparameters.pop("n_envs", 1))
+    rows = []
+    for device in _devices(args):
+        for seed in range(args.seeds):
+            env = make_vec_env(env_id, n_envs=n_envs, seed=seed) if n_envs > 1 else env_id
+            model = TwoStageSAC("TAMPolicy", env, seed=seed, device=device, **hyperparameters)
+            seeds = eval_seeds(seed, episodes)
+            untrained = float(np.mean(episode_returns(model, env_id, seeds)))
+            callback = ToTarget(seeds, LEARN_TARGET * untrained)
+            model.learn(budget, callback=callback)
+            steps, seconds, value = callback.curve[-1]
+            reached = value >= callback.target
+            rows.append(
+                {
+                    "device": device,
+                    "seed": seed,
+                    "n_envs": n_envs,
+                    "untrained": untrained,
+                    "target_return": callback.target,
+                    "reached": reached,
+                    "seconds_to_target": seconds if reached else None,
+                    "env_steps_to_target": steps if reached else None,
+                    "last_return": value,
+                    "last_ratio": value / untrained if untrained > 0 else None,
+                    "training_s": seconds,  # rounded like the curve
+                    "env_steps": steps,
+                    "curve": callback.curve,
+                }
+            )
+    return rows
+
+
 def _amix_ms(model: TwoStageSAC, device: str, reps: int) -> float:
     """Median time of the AMIX work that every stage-1 gradient step must do (implementation details 1–3): the twin
     target mixers' self-attention hypernetworks on the next states (no gradient) and the twin online mixers' forward
@@ -411,7 +492,13 @@ def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
-BENCHES: dict[str, BenchFn] = {"envs": bench_envs, "policy": bench_policy, "train": bench_train, "baselines": bench_baselines}
+BENCHES: dict[str, BenchFn] = {
+    "envs": bench_envs,
+    "policy": bench_policy,
+    "train": bench_train,
+    "baselines": bench_baselines,
+    "learn": bench_learn,
+}
 
 
 def _print_table(name: str, rows: list[dict[str, Any]]) -> None:
@@ -432,10 +519,14 @@ def _cell(v: Any) -> str:
         return ""
     if isinstance(v, float):
         return f"{v:,.3g}" if abs(v) < 100 else f"{v:,.0f}"
+    if isinstance(v, list) and len(v) > 4:  # a curve: in the JSON
+        return f"{len(v)} points"
     return str(v)
 
 
 def main(argv: list[str] | None = None) -> None:
+    from sb3_taskalloc.experiments.budgets import yaml_mapping
+
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.bench", description=__doc__)
     parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
     parser.add_argument("--out", default="bench_out", help="folder for the JSON results")
@@ -446,6 +537,12 @@ def main(argv: list[str] | None = None) -> None:
         type=int,
         default=None,
         help="policy benchmark without --model: steps to train one first (default 3,000; 100 with --quick)",
+    )
+    parser.add_argument("--seeds", type=int, default=1, help="learn benchmark: training seeds 0 .. seeds - 1")
+    parser.add_argument("--learn-steps", type=int, default=48_000, help="learn benchmark: env steps at most per seed")
+    parser.add_argument("--eval-every", type=int, default=4_000, help="learn benchmark: env steps between evaluations")
+    parser.add_argument(
+        "--algo-kwargs", type=yaml_mapping, default={}, help="learn benchmark: TwoStageSAC keywords over the zoo config"
     )
     parser.add_argument(
         "--device",

@@ -132,6 +132,19 @@ def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str
     return block
 
 
+def yaml_mapping(text: str) -> dict[str, Any]:
+    """A command-line option's YAML (or JSON) mapping, e.g. ``"{entropy_bonus: mean}"``; anything else is an
+    :class:`argparse.ArgumentTypeError` naming the text."""
+    import argparse
+
+    import yaml
+
+    value = yaml.safe_load(text)
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a YAML mapping, got {text!r}")
+    return value
+
+
 def row_env(env: str, row: str) -> str | None:
     """Env id of a row (None when the env has no such preset)."""
     if row == "train":
