@@ -272,3 +272,32 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert [r["seed"] for r in summary["seeds"]] == [0, 1] and summary["seeds"][1]["MILP"] == data["seeds"][1]["MILP"]
     # n_envs = 2 (vectorised collection): the step count passes 5 at 6, and the curve is measured there.
     assert all([p[0] for p in r["curve"]] == [0, 6, 10] for r in summary["seeds"])
+
+
+def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tmp_path):
+    """With validation episodes the curve is measured on them (disjoint from the held-out episodes), the checkpoint of
+    its best point after step 0 is saved and evaluated on the held-out episodes, and the summary reports it."""
+    import json
+
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments import learn
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "learning_rate": 0.05, "policy_kwargs": {"hidden_dim": 8}}
+    run = learn.LearnRun("EPT", seeds=1, steps=12, eval_episodes=2, eval_every=4, algo_kwargs=kwargs, planners=(),
+                         out=tmp_path, validation_episodes=2)  # fmt: skip
+    plain = learn.LearnRun("EPT", seeds=1, steps=12, eval_episodes=2, eval_every=4, algo_kwargs=kwargs, planners=(),
+                           out=tmp_path)  # fmt: skip
+    assert run.key != plain.key  # a selected checkpoint is another result
+    text = run.run(progress=False).read_text()
+    assert "| seed | untrained | trained | best on validation | Greedy | MILP |" in text
+    assert "best on validation / untrained (means):" in text and "--validation-episodes 2" in text
+    (record,) = json.loads((tmp_path / "EPT.json").read_text())["seeds"]
+    validation = learn.validation_seeds(0, 2)
+    assert set(validation).isdisjoint(record["eval_seeds"]) and set(validation).isdisjoint(range(10_000))
+    steps, values = zip(*record["curve"], strict=True)
+    assert steps == (0, 4, 8, 12)
+    best = int(np.argmax(values[1:])) + 1  # the first best point after step 0
+    assert record["best_step"] == steps[best]
+    model = TwoStageSAC.load(run.seed_path(0).with_name(run.seed_path(0).stem + "_best.zip"), device="cpu")
+    assert np.mean(learn.episode_returns(model, run.env_id, validation)) == pytest.approx(values[best])
+    assert learn.episode_returns(model, run.env_id, record["eval_seeds"]) == pytest.approx(record["best"])

@@ -46,6 +46,12 @@ def main(argv: list[str] | None = None) -> None:
     learn.add_argument("--steps", type=int, default=20_000, help="training env steps per seed")
     learn.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes per seed")
     learn.add_argument("--eval-every", type=int, default=2_000, help="env steps between the curve's evaluations")
+    learn.add_argument(
+        "--validation-episodes",
+        type=int,
+        default=0,
+        help="curve on this many validation episodes per seed, and its best checkpoint evaluated too (0: off)",
+    )
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
     learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
     learn.add_argument("--out", default="results/learn")
@@ -65,12 +71,14 @@ def main(argv: list[str] | None = None) -> None:
 
         if min(args.seeds, args.steps, args.eval_episodes, args.eval_every, args.jobs) < 1:
             parser.error("--seeds, --steps, --eval-episodes, --eval-every and --jobs must be >= 1")
+        if args.validation_episodes < 0:
+            parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
         planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
         unknown = set(planners) - set(PLANNERS)
         if unknown:
             parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
         run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
-                       out=args.out)  # fmt: skip
+                       out=args.out, validation_episodes=args.validation_episodes)  # fmt: skip
         path = run.run(jobs=args.jobs)
         print(path.read_text())
         print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")

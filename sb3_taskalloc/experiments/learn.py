@@ -9,7 +9,10 @@ on the same held-out episodes per seed (reset seeds ``10_000 + 100·seed + k``, 
   against Monte-Carlo returns).
 
 During training the deterministic return is measured every ``--eval-every`` steps on two held-out episodes (the
-curve). Each finished seed is saved to ``<out>/<env>/seed_<k>.json`` under a digest of the settings and skipped when
+curve). With ``--validation-episodes V`` it is measured on V validation episodes instead (reset seeds
+``30_000 + 100·seed + k``), and the checkpoint of its best point after step 0 is evaluated on the held-out episodes
+beside the final model: the validation episodes choose it, so its held-out return is not selected on the episodes
+that report it. Each finished seed is saved to ``<out>/<env>/seed_<k>.json`` under a digest of the settings and skipped when
 the command is run again: an interrupted run loses at most the seed in progress. The baselines do not depend on the
 algorithm's settings: they are saved per seed under a digest of the env and their own budgets, computed once and shared
 by every run with the same ``--out``. The summary goes to ``<out>/<env>.md``,
@@ -18,6 +21,7 @@ by every run with the same ``--out``. The summary goes to ``<out>/<env>.md``,
 
 from __future__ import annotations
 
+import copy
 import json
 import time
 from collections.abc import Callable, Iterable
@@ -40,6 +44,12 @@ PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
 def eval_seeds(seed: int, episodes: int) -> list[int]:
     """Reset seeds of the held-out evaluation episodes of training seed ``seed`` (disjoint from training seeds)."""
     return [10_000 + 100 * seed + k for k in range(episodes)]
+
+
+def validation_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of the validation episodes of training seed ``seed``, which pick the best checkpoint
+    (``LearnRun(validation_episodes)``): disjoint from the training seeds and from every held-out evaluation episode."""
+    return [30_000 + 100 * seed + k for k in range(episodes)]
 
 
 def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable[[gym.Env], Any] | None = None) -> list[float]:
@@ -71,20 +81,33 @@ def _one_thread() -> None:
 
 
 class Curve(BaseCallback):
-    """Deterministic return on held-out episodes every ``every`` env steps (and at step 0)."""
+    """Deterministic return on ``seeds``' episodes every ``every`` env steps (and at step 0).
 
-    def __init__(self, env_id: str, seeds: list[int], every: int) -> None:
+    :param keep_best: also keep a copy of the policy's weights at the best evaluation after step 0 (``best``, at
+        ``best_step``), as SB3's ``EvalCallback(best_model_save_path=...)`` keeps the best model
+    """
+
+    def __init__(self, env_id: str, seeds: list[int], every: int, keep_best: bool = False) -> None:
         super().__init__()
-        self.env_id, self.seeds, self.every = env_id, seeds, every
+        self.env_id, self.seeds, self.every, self.keep_best = env_id, seeds, every, keep_best
         self.points: list[tuple[int, float]] = []
+        self.best: dict[str, Any] | None = None
+        self.best_step = 0
+
+    def _evaluate(self) -> None:
+        value = float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))
+        if self.keep_best and self.num_timesteps > 0 and value > max((v for t, v in self.points if t > 0), default=-np.inf):
+            self.best = copy.deepcopy(self.model.policy.state_dict())
+            self.best_step = self.num_timesteps
+        self.points.append((self.num_timesteps, value))
 
     def _on_training_start(self) -> None:
-        self.points.append((0, float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))))
+        self._evaluate()
 
     def _on_step(self) -> bool:
         # With n_envs envs the step count grows by n_envs per call: evaluate on passing each multiple of `every`.
         if self.num_timesteps // self.every > (self.num_timesteps - self.training_env.num_envs) // self.every:
-            self.points.append((self.num_timesteps, float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))))
+            self._evaluate()
         return True
 
 
@@ -101,6 +124,10 @@ class LearnRun:
     :param planners: planner class names to run (the best is reported); empty: none
     :param milp_time_limit: seconds per MILP solve
     :param out: results folder
+    :param validation_episodes: when > 0, the curve is measured on this many validation episodes per seed
+        (:func:`validation_seeds`, disjoint from the held-out ones) and the checkpoint of its best point after step 0
+        is evaluated on the held-out episodes too (column "best on validation"); 0: the curve uses the first two
+        held-out episodes and only the final model is evaluated
     """
 
     env: str
@@ -112,6 +139,7 @@ class LearnRun:
     planners: tuple[str, ...] = PLANNERS
     milp_time_limit: float = 2.0
     out: str | Path = "results/learn"
+    validation_episodes: int = 0
 
     @property
     def env_id(self) -> str:
@@ -124,7 +152,9 @@ class LearnRun:
     @property
     def key(self) -> str:
         """Digest of every setting that changes a seed's result."""
-        settings = (self.steps, self.eval_episodes, self.eval_every, self.planners, self.milp_time_limit)
+        settings: tuple[Any, ...] = (self.steps, self.eval_episodes, self.eval_every, self.planners, self.milp_time_limit)
+        if self.validation_episodes:  # appended only when set: the digests of runs without it stay valid
+            settings += (self.validation_episodes,)
         return config_key(env_settings(self.env_id), self.hyperparameters, settings)
 
     def seed_path(self, seed: int) -> Path:
@@ -144,7 +174,10 @@ class LearnRun:
         env = make_vec_env(self.env_id, n_envs=n_envs, seed=seed) if n_envs > 1 else self.env_id
         model = TwoStageSAC("TAMPolicy", env, seed=seed, device="cpu", **hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
-        curve = Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
+        if self.validation_episodes:
+            curve = Curve(self.env_id, validation_seeds(seed, self.validation_episodes), self.eval_every, keep_best=True)
+        else:
+            curve = Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
         t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
@@ -154,6 +187,10 @@ class LearnRun:
         record.update(q_corr=diagnosis.q_corr, q_scale=diagnosis.q_scale, sampled=diagnosis.sampled_return)
         record.update(self.baselines(seed))
         model.save(path.with_suffix(".zip"))
+        if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
+            model.policy.load_state_dict(curve.best)
+            record.update(best=episode_returns(model, self.env_id, seeds), best_step=curve.best_step)
+            model.save(path.with_name(path.stem + "_best.zip"))
         atomic_write_text(path, json.dumps(record) + "\n")
         return record
 
@@ -210,7 +247,8 @@ class LearnRun:
         """``<out>/<env>.json`` (per seed), ``.png`` (curves) and ``.md`` (per seed, mean ± std, targets)."""
         from sb3_taskalloc.experiments.plots import plot_learning_progress
 
-        columns = ["untrained", "trained", "Greedy", "MILP", *self.planners]
+        selected = ["best"] if all("best" in r for r in records) else []
+        columns = ["untrained", "trained", *selected, "Greedy", "MILP", *self.planners]
         means = {c: [float(np.mean(r[c])) for r in records] for c in columns}
         best_planner = max(self.planners, key=lambda p: float(np.mean(means[p]))) if self.planners else None
         stem = Path(self.out) / self.env
@@ -219,16 +257,27 @@ class LearnRun:
             {r["seed"]: r["curve"] for r in records},
             {"Greedy": float(np.mean(means["Greedy"])), "MILP": float(np.mean(means["MILP"]))},
             stem.with_suffix(".png"),
-            f"{self.env_id}: deterministic return on held-out episodes while training",
+            f"{self.env_id}: deterministic return on {'validation' if self.validation_episodes else 'held-out'} episodes "
+            "while training",
         )
-        shown = ["untrained", "trained", "Greedy", "MILP", *([best_planner] if best_planner else [])]
+        shown = ["untrained", "trained", *selected, "Greedy", "MILP", *([best_planner] if best_planner else [])]
+        headers = ["best on validation" if c == "best" else c for c in shown]
         lines = [
             f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
             "episodes",
             "",
             f"Command: `{self.command()}`. Curve: `{png.name}`.",
             "",
-            "| seed | " + " | ".join(shown) + " | corr(Q, G) | scale Q/G | training s |",
+            *(
+                [
+                    "Trained: the final model. Best: the checkpoint with the best return on the validation episodes (the "
+                    "curve), evaluated on the held-out ones.",
+                    "",
+                ]
+                if selected
+                else []
+            ),
+            "| seed | " + " | ".join(headers) + " | corr(Q, G) | scale Q/G | training s |",
             "|---" * (len(shown) + 4) + "|",
         ]
         for k, r in enumerate(records):
@@ -256,6 +305,13 @@ class LearnRun:
             f"- critic: corr(Q, G) {corr.mean():.2f} (target ≥ 0.7), scale Q/G {scale.mean():.2f} (target 0.7–1.3)",
             f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
         ]
+        if "best" in means:  # the same targets for the checkpoint the validation episodes pick
+            best = np.array(means["best"])
+            lines += [
+                f"- best on validation / untrained (means): {best.mean() / init.mean():.3f}, above untrained in "
+                f"{int((best > init).sum())} of {n} seeds, above Greedy in {int((best > greedy).sum())} of {n}, "
+                f"{best.mean() / milp.mean():.3f} × per-step MILP; std over seeds {best.std():.1f}",
+            ]
         return lines
 
     def zero_shot(self, shift: str) -> Path:
@@ -306,12 +362,15 @@ class LearnRun:
             "eval_episodes": self.eval_episodes,
             "hyperparameters": self.hyperparameters,
             "planners": list(self.planners),
+            "validation_episodes": self.validation_episodes,
             "key": self.key,
         }
 
     def command(self) -> str:
         extra = f" --algo-kwargs '{json.dumps(self.algo_kwargs)}'" if self.algo_kwargs else ""
         planners = " --planners " + (" ".join(self.planners) if self.planners else "none")
+        if self.validation_episodes:
+            planners += f" --validation-episodes {self.validation_episodes}"
         return (
             f"python -m sb3_taskalloc.experiments learn --env {self.env} --seeds {self.seeds} --steps {self.steps} "
             f"--eval-episodes {self.eval_episodes} --eval-every {self.eval_every}{planners}{extra}"
