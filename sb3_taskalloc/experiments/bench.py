@@ -11,6 +11,7 @@ import copy
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 from collections.abc import Callable
@@ -562,7 +563,7 @@ def main(argv: list[str] | None = None) -> None:
         _print_table(name, rows)
         record = {
             "benchmark": name,
-            "command": "python -m sb3_taskalloc.bench " + " ".join(sys.argv[1:] if argv is None else argv),
+            "command": "python -m sb3_taskalloc.bench " + shlex.join(sys.argv[1:] if argv is None else argv),
             "machine": _machine(),
             "torch_threads": torch.get_num_threads(),
             "results": rows,
