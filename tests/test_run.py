@@ -215,3 +215,11 @@ def test_n_envs_save_load_resume(tmp_path):
     assert loaded.num_timesteps == 20
     obs = loaded.get_env().reset()
     assert loaded.predict(obs, deterministic=True)[0].shape == (2, env.action_space.shape[0])
+    # Another env count on load (SB3 allows it in load, not in set_env): one env, and a size-shifted preset.
+    single = TwoStageSAC.load(tmp_path / "model", env=gym.make("TaskAlloc/EPT-v0"), device="cpu")
+    assert single.n_envs == 1 and single.replay_buffer.n_envs == 1
+    single.learn(4, reset_num_timesteps=False)
+    shifted = TwoStageSAC.load(tmp_path / "model", env=gym.make("TaskAlloc/EPT-EntityShift-v0"), device="cpu")
+    assert shifted.n_envs == 1
+    with pytest.raises(AssertionError, match="number of environments"):
+        single.set_env(make_vec_env("TaskAlloc/EPT-v0", n_envs=2))

@@ -484,13 +484,16 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfTwoStageSAC:
-        """Load a model; ``env`` may have other entity/task counts when the policy is size-agnostic (see :meth:`set_env`)."""
+        """Load a model; ``env`` may have other entity/task counts when the policy is size-agnostic (see :meth:`set_env`),
+        and another number of envs (a model trained on ``n_envs`` copies loads on one env to evaluate or transfer)."""
         if isinstance(path, str | pathlib.Path):
             check_saved_model(path, ("data", "policy.pth"))
         model = super().load(
             path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
         )
         if env is not None:
+            env = model._wrap_env(env, model.verbose)  # type: ignore[arg-type]
+            model.n_envs = env.num_envs  # another env count is fine on load, as in SB3's ``load`` (not in ``set_env``)
             model.set_env(env, force_reset)
         return model
 
