@@ -206,6 +206,29 @@ def test_diagnose_measures_calibration_and_drift(tmp_path):
         "TAMPolicy", "TaskAlloc/EPT-v0", seed=0, device="cpu", policy_kwargs={"preassign": False, "hidden_dim": 16}
     )
     assert np.isnan(diagnose(no_pre, "TaskAlloc/EPT-v0", episodes=1).q_corr)  # no stage-1 critic to read
+    shares = [fresh.tasks_kept, fresh.tasks_short, fresh.tasks_unprofitable, fresh.tasks_no_candidates]
+    assert sum(shares) == pytest.approx(1.0) and fresh.tasks_kept > 0 and "kept / short of demand" in path.read_text()
+
+
+def test_task_outcomes_classify_each_open_task():
+    """Open tasks: kept, short of demand, covered without profit, no candidates; closed task slots are not counted."""
+    from sb3_taskalloc.experiments.diagnose import task_outcomes
+
+    obs = {
+        "task_mask": np.array([1, 1, 1, 1, 0]),
+        "entity_supply": np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]),
+        "task_demand": np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [1.0, 0.0], [1.0, 0.0]]),
+    }
+    candidates = np.zeros((5, 3), dtype=bool)
+    candidates[0, [0, 1]] = True  # covers task 0, kept
+    candidates[1, 2] = False  # task 1: no candidates
+    candidates[2, 0] = True  # task 2: entity 0 alone lacks the second resource
+    candidates[3, 2] = True  # task 3: covered, but not kept (no profit)
+    candidates[4, 2] = True  # task 4 is closed: not counted
+    kept = np.array([True, False, False, False, False])
+    assert task_outcomes(obs, candidates, kept).tolist() == [1, 1, 1, 1]
+    candidates[2, 1] = True  # now 0 and 1 together cover task 2
+    assert task_outcomes(obs, candidates, kept).tolist() == [1, 0, 2, 1]
 
 
 def test_resume_over_a_broken_model_file(tmp_path, capsys):

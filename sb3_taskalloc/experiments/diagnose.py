@@ -12,7 +12,11 @@
 - the entropy bonus of the stage-1 target against the reward: mean γ·α·H(s') and mean |r| per transition;
 - the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
   changed;
-- sampled against deterministic return, on the same evaluation seeds.
+- sampled against deterministic return, on the same evaluation seeds;
+- what becomes of the open tasks in the deterministic episodes (:func:`task_outcomes`): the shares of open tasks per
+  step whose team is kept, whose candidates fall short of the demand, whose candidates cover it without profit, and
+  that have no candidates. A per-entity pre-assignment that leaves most open tasks short or empty is where a
+  per-step optimum such as the MILP gains.
 """
 
 from __future__ import annotations
@@ -52,6 +56,10 @@ class Diagnosis:
     abs_reward_mean: float
     kl_per_entity: float
     argmax_changed: float
+    tasks_kept: float
+    tasks_short: float
+    tasks_unprofitable: float
+    tasks_no_candidates: float
 
     def table(self) -> str:
         """A Markdown table of the figures."""
@@ -64,6 +72,13 @@ class Diagnosis:
             ("γ·α·H(s') per transition / mean |r|", f"{self.entropy_bonus_mean:.3f} / {self.abs_reward_mean:.3f}"),
             ("KL(π ‖ π₀) per free entity", f"{self.kl_per_entity:.2e}"),
             ("free entities whose argmax task changed", f"{100 * self.argmax_changed:.1f} %"),
+            (
+                "open tasks per step (deterministic): kept / short of demand / unprofitable / no candidates",
+                " / ".join(
+                    f"{100 * v:.1f} %"
+                    for v in (self.tasks_kept, self.tasks_short, self.tasks_unprofitable, self.tasks_no_candidates)
+                ),
+            ),
         ]
         head = f"{self.env}: {self.episodes} sampled and {self.episodes} deterministic episodes"
         head += f", γ {self.gamma}, α {self.ent_coef:.4g}"
@@ -75,7 +90,7 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
     termination."""
     policy = model.policy
     obs, _ = env.reset(seed=seed)
-    observations, candidates, rewards = [], [], []
+    observations, candidates, kept, rewards = [], [], [], []
     done = False
     while not done:
         with th.inference_mode():
@@ -83,11 +98,35 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
             decision = policy.decide(view, deterministic=deterministic)
         observations.append(obs)
         candidates.append(decision.candidates[0].cpu().numpy())
+        kept.append(decision.kept[0].cpu().numpy())
         obs, reward, terminated, truncated, _ = env.step(decision.env_action[0].cpu().numpy())
         rewards.append(float(reward))
         done = terminated or truncated
     observations.append(obs)
-    return {"obs": observations, "candidates": candidates, "rewards": np.asarray(rewards), "terminated": terminated}
+    return {
+        "obs": observations,
+        "candidates": candidates,
+        "kept": kept,
+        "rewards": np.asarray(rewards),
+        "terminated": terminated,
+    }
+
+
+def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.ndarray, tol: float = 1e-5) -> np.ndarray:
+    """Counts of the open tasks of one decision by outcome: [kept, short of demand, covered without profit, no
+    candidates].
+
+    :param obs: the observation decided on
+    :param candidates: (M, N) bool candidate sets of the decision
+    :param kept: (M,) bool tasks whose team was kept
+    :param tol: demand left below this counts as covered
+    """
+    open_ = obs["task_mask"].astype(bool)
+    has = candidates.any(1)
+    supply = candidates.astype(np.float64) @ obs["entity_supply"].astype(np.float64)  # (M, K) candidates' total supply
+    short = (supply < obs["task_demand"] - tol).any(1)
+    outcomes = [kept, ~kept & has & short, ~kept & has & ~short, ~kept & ~has]
+    return np.array([int((o & open_).sum()) for o in outcomes])
 
 
 def _discounted(values: np.ndarray, gamma: float) -> np.ndarray:
@@ -164,6 +203,10 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             figures.update(
                 kl_per_entity=float(np.concatenate(kl).mean()), argmax_changed=float(np.concatenate(changed).mean())
             )
+    decisions = [d for e in deterministic for d in zip(e["obs"][:-1], e["candidates"], e["kept"], strict=True)]
+    counts = np.sum([task_outcomes(*d) for d in decisions], axis=0) if decisions else np.zeros(4)
+    shares = counts / max(float(counts.sum()), 1.0)
+    figures.update(zip(("tasks_kept", "tasks_short", "tasks_unprofitable", "tasks_no_candidates"), shares, strict=True))
     return Diagnosis(
         env=env_id,
         episodes=episodes,
