@@ -333,32 +333,34 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
         raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
 
     class ToTarget(BaseCallback):
-        """Evaluates on passing each multiple of ``every`` env steps, with the training clock stopped; stops at the
-        target."""
+        """Evaluates on passing each multiple of ``every`` env steps, with the training clock stopped (after the
+        device's queued work); stops at the target."""
 
         def __init__(self, seeds: list[int], target: float) -> None:
             super().__init__()
             self.seeds, self.target = seeds, target
-            self.seconds, self.clock = 0.0, 0.0
-            self.curve: list[tuple[int, float, float]] = []  # (env steps, training seconds, return)
+            self.seconds, self.clock, self.last, self.reached = 0.0, 0.0, float("nan"), False
+            self.curve: list[tuple[int, float, float]] = []  # (env steps, training seconds, return), rounded
 
         def _on_training_start(self) -> None:
             self.clock = time.perf_counter()
 
-        def _on_step(self) -> bool:
-            if self.num_timesteps // every == (self.num_timesteps - self.training_env.num_envs) // every:
-                return True
+        def _evaluate(self) -> None:
+            _sync(self.model.device.type)
             self.seconds += time.perf_counter() - self.clock
-            value = float(np.mean(episode_returns(self.model, env_id, self.seeds)))
-            self.curve.append((self.num_timesteps, round(self.seconds, 2), round(value, 2)))
+            self.last = float(np.mean(episode_returns(self.model, env_id, self.seeds)))
+            self.reached = self.last >= self.target
+            self.curve.append((self.num_timesteps, round(self.seconds, 2), round(self.last, 2)))
             self.clock = time.perf_counter()
-            return value < self.target
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps // every > (self.num_timesteps - self.training_env.num_envs) // every:
+                self._evaluate()
+            return not self.reached
 
         def _on_training_end(self) -> None:  # the budget ran out between two evaluations: evaluate where it stopped
             if not self.curve or self.curve[-1][0] < self.num_timesteps:
-                self.seconds += time.perf_counter() - self.clock
-                value = float(np.mean(episode_returns(self.model, env_id, self.seeds)))
-                self.curve.append((self.num_timesteps, round(self.seconds, 2), round(value, 2)))
+                self._evaluate()
 
     hyperparameters = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
     n_envs = int(hyperparameters.pop("n_envs", 1))
@@ -371,8 +373,8 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
             untrained = float(np.mean(episode_returns(model, env_id, seeds)))
             callback = ToTarget(seeds, LEARN_TARGET * untrained)
             model.learn(budget, callback=callback)
-            steps, seconds, value = callback.curve[-1]
-            reached = value >= callback.target
+            steps, seconds, _ = callback.curve[-1]
+            reached, value = callback.reached, callback.last
             rows.append(
                 {
                     "device": device,
