@@ -319,28 +319,35 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     deterministic mean return on seed k's held-out episodes (those of ``experiments learn``) reaches
     :data:`LEARN_TARGET` × the same policy untrained on them, or ``--learn-steps`` env steps. It is evaluated every
     ``--eval-every`` env steps; the evaluations are not counted in the time. One row per training seed and device."""
-    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.env_util import make_vec_env
 
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
-    from sb3_taskalloc.experiments.learn import episode_returns, eval_seeds
+    from sb3_taskalloc.experiments.learn import Curve, episode_returns, eval_seeds
 
     env_id = "TaskAlloc/RBF-v0"
     budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
     if budget < 1 or every < 1:
         raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
 
-    class ToTarget(BaseCallback):
-        """Evaluates on passing each multiple of ``every`` env steps, with the training clock stopped (after the
-        device's queued work); stops at the target."""
+    class ToTarget(Curve):
+        """The learning experiment's curve, timed: each evaluation (on passing a multiple of ``every`` env steps) runs
+        with the training clock stopped (after the device's queued work), and training stops at the target. No
+        evaluation at step 0: the untrained return is measured before."""
 
         def __init__(self, seeds: list[int], target: float) -> None:
-            super().__init__()
-            self.seeds, self.target = seeds, target
-            self.seconds, self.clock, self.last, self.reached = 0.0, 0.0, float("nan"), False
-            self.curve: list[tuple[int, float, float]] = []  # (env steps, training seconds, return), rounded
+            super().__init__(env_id, seeds, every)
+            self.target, self.seconds, self.clock = target, 0.0, 0.0
+            self.timed: list[tuple[int, float, float]] = []  # (env steps, training seconds, return), rounded
+
+        @property
+        def last(self) -> float:
+            return self.points[-1][1]
+
+        @property
+        def reached(self) -> bool:
+            return bool(self.points) and self.last >= self.target
 
         def _on_training_start(self) -> None:
             self.clock = time.perf_counter()
@@ -348,18 +355,16 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
         def _evaluate(self) -> None:
             _sync(self.model.device.type)
             self.seconds += time.perf_counter() - self.clock
-            self.last = float(np.mean(episode_returns(self.model, env_id, self.seeds)))
-            self.reached = self.last >= self.target
-            self.curve.append((self.num_timesteps, round(self.seconds, 2), round(self.last, 2)))
+            super()._evaluate()
+            self.timed.append((self.num_timesteps, round(self.seconds, 2), round(self.last, 2)))
             self.clock = time.perf_counter()
 
         def _on_step(self) -> bool:
-            if self.num_timesteps // every > (self.num_timesteps - self.training_env.num_envs) // every:
-                self._evaluate()
+            super()._on_step()
             return not self.reached
 
         def _on_training_end(self) -> None:  # the budget ran out between two evaluations: evaluate where it stopped
-            if not self.curve or self.curve[-1][0] < self.num_timesteps:
+            if not self.points or self.points[-1][0] < self.num_timesteps:
                 self._evaluate()
 
     hyperparameters = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
@@ -373,7 +378,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
             untrained = float(np.mean(episode_returns(model, env_id, seeds)))
             callback = ToTarget(seeds, LEARN_TARGET * untrained)
             model.learn(budget, callback=callback)
-            steps, seconds, _ = callback.curve[-1]
+            steps, seconds, _ = callback.timed[-1]
             reached, value = callback.reached, callback.last
             rows.append(
                 {
@@ -389,7 +394,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
                     "last_ratio": value / untrained if untrained > 0 else None,
                     "training_s": seconds,  # rounded like the curve
                     "env_steps": steps,
-                    "curve": callback.curve,
+                    "curve": callback.timed,
                 }
             )
     return rows

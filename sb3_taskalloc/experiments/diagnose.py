@@ -31,6 +31,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
+from sb3_taskalloc.baselines.greedy import COVER_TOL
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.two_stage_sac.losses import state_entropy
@@ -112,14 +113,14 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
     }
 
 
-def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.ndarray, tol: float = 1e-5) -> np.ndarray:
+def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.ndarray, tol: float = COVER_TOL) -> np.ndarray:
     """Counts of the open tasks of one decision by outcome: [kept, short of demand, covered without profit, no
     candidates].
 
     :param obs: the observation decided on
     :param candidates: (M, N) bool candidate sets of the decision
     :param kept: (M,) bool tasks whose team was kept
-    :param tol: demand left below this counts as covered
+    :param tol: demand left below this counts as covered (Greedy's tolerance)
     """
     open_ = obs["task_mask"].astype(bool)
     has = candidates.any(1)
