@@ -210,6 +210,44 @@ def test_diagnose_measures_calibration_and_drift(tmp_path):
     assert sum(shares) == pytest.approx(1.0) and fresh.tasks_kept > 0 and "kept / short of demand" in path.read_text()
 
 
+def test_diagnose_reads_the_critic_against_the_reward_it_learns():
+    """A critic trained on the commitment reward is compared with returns of that reward, not of the env reward: on the
+    same sampled episodes (diagnose seeds its sampling) only the critic's returns change."""
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.diagnose import diagnose
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    paid = diagnose(model, "TaskAlloc/RBF-v0", episodes=1)
+    model.reward_timing = "commitment"
+    credited = diagnose(model, "TaskAlloc/RBF-v0", episodes=1)
+    assert paid.reward_timing == "completion" and credited.reward_timing == "commitment"
+    assert credited.sampled_return == paid.sampled_return  # the same episodes, scored by the env reward
+    assert credited.mc_return_mean != pytest.approx(paid.mc_return_mean, rel=1e-3)
+    assert "credited at commitment" in credited.table()
+
+
+def test_learning_experiment_rediagnoses_records_of_commitment_critics(tmp_path):
+    """A finished seed whose critic figures predate ``critic_reward`` is measured again from its saved model when the
+    critic learned the commitment reward, and kept with a warning when the model is gone."""
+    import json
+
+    from sb3_taskalloc.experiments import learn
+
+    kwargs = {"learning_starts": 5, "batch_size": 8, "reward_timing": "commitment", "policy_kwargs": {"hidden_dim": 16}}
+    run = learn.LearnRun("EPT", 1, steps=10, eval_episodes=2, eval_every=5, algo_kwargs=kwargs, planners=(), out=tmp_path)
+    record = run.run_seed(0)
+    assert record["critic_reward"] == "commitment"
+    path = run.seed_path(0)
+    stale = {k: v for k, v in record.items() if k != "critic_reward"} | {"q_corr": 99.0}
+    path.write_text(json.dumps(stale))
+    again = run.run_seed(0)
+    assert again["q_corr"] == pytest.approx(record["q_corr"]) and json.loads(path.read_text())["critic_reward"] == "commitment"
+    path.write_text(json.dumps(stale))
+    path.with_suffix(".zip").unlink()
+    with pytest.warns(UserWarning, match="is gone"):
+        assert run.run_seed(0)["q_corr"] == 99.0
+
+
 def test_task_outcomes_classify_each_open_task():
     """Open tasks: kept, short of demand, covered without profit, no candidates; closed task slots are not counted."""
     from sb3_taskalloc.experiments.diagnose import task_outcomes

@@ -8,7 +8,10 @@
   bootstraps, G^H_t = Σ_k γ^k (r_{t+k} + γ α H(s_{t+k+1})). The critic bootstraps through the time limit (it does
   not observe time), so the returns are summed over a rollout that runs past the limit until the discount has spent
   99 % of its weight; only the states within the limit are compared. Cut at the limit, G_t would fall to 0 near the end
-  of every episode, and the correlation would measure that fall instead of the critic;
+  of every episode, and the correlation would measure that fall instead of the critic. r is the reward the critic
+  learns: the env reward, or ``info["commitment_reward"]`` for a model trained with ``reward_timing="commitment"``
+  (the same profit, credited when a team is committed instead of when it arrives: on MT about 24 steps earlier, a
+  factor 0.9^24 ≈ 0.08 at γ = 0.9, so the env reward would misjudge such a critic);
 - the entropy bonus of the stage-1 target against the reward: mean γ·α·H(s') and mean |r| per transition;
 - the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
   changed;
@@ -44,6 +47,7 @@ class Diagnosis:
     env: str
     episodes: int
     gamma: float
+    reward_timing: str
     ent_coef: float
     sampled_return: float
     deterministic_return: float
@@ -82,16 +86,16 @@ class Diagnosis:
             ),
         ]
         head = f"{self.env}: {self.episodes} sampled and {self.episodes} deterministic episodes"
-        head += f", γ {self.gamma}, α {self.ent_coef:.4g}"
+        head += f", γ {self.gamma}, α {self.ent_coef:.4g}, the critic's reward r credited at {self.reward_timing}"
         return "\n".join([head, "", "| figure | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)])
 
 
 def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[str, Any]:
-    """One episode of the model's two-stage decisions: observations, candidate sets, rewards and whether it ended by
-    termination."""
+    """One episode of the model's two-stage decisions: observations, candidate sets, env rewards, commitment rewards
+    (``info["commitment_reward"]``, NaN where the env does not report it) and whether it ended by termination."""
     policy = model.policy
     obs, _ = env.reset(seed=seed)
-    observations, candidates, kept, rewards = [], [], [], []
+    observations, candidates, kept, rewards, credits = [], [], [], [], []
     done = False
     while not done:
         with th.inference_mode():
@@ -100,8 +104,9 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
         observations.append(obs)
         candidates.append(decision.candidates[0].cpu().numpy())
         kept.append(decision.kept[0].cpu().numpy())
-        obs, reward, terminated, truncated, _ = env.step(decision.env_action[0].cpu().numpy())
+        obs, reward, terminated, truncated, info = env.step(decision.env_action[0].cpu().numpy())
         rewards.append(float(reward))
+        credits.append(float(info.get("commitment_reward", math.nan)))
         done = terminated or truncated
     observations.append(obs)
     return {
@@ -109,6 +114,7 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
         "candidates": candidates,
         "kept": kept,
         "rewards": np.asarray(rewards),
+        "commitment": np.asarray(credits),
         "terminated": terminated,
     }
 
@@ -152,7 +158,7 @@ def _stack(observations: list[dict[str, np.ndarray]], device: th.device) -> dict
 @th.no_grad()
 def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> Diagnosis:
     """Measure the model on ``episodes`` sampled and ``episodes`` deterministic episodes of ``env_id`` (seeds from
-    ``seed``, disjoint from training seeds by default).
+    ``seed``, disjoint from training seeds by default; ``seed`` also seeds the sampled decisions).
 
     :param model: a :class:`~sb3_taskalloc.TwoStageSAC`
     """
@@ -163,13 +169,18 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
     long_env = env
     if limit is not None:  # run past the limit until γ^k < 1 %: the critic's returns do not stop there
         long_env = gym.make(env_id, max_episode_steps=limit + math.ceil(math.log(0.01) / math.log(gamma)))
-    sampled = [_episode(model, long_env, seed + k, deterministic=False) for k in range(episodes)]
+    cuda = [model.device.index or 0] if model.device.type == "cuda" else []
+    with th.random.fork_rng(devices=cuda):  # the sampled decisions are reproducible and leave the caller's stream alone
+        th.manual_seed(seed)
+        sampled = [_episode(model, long_env, seed + k, deterministic=False) for k in range(episodes)]
     deterministic = [_episode(model, env, seed + k, deterministic=True) for k in range(episodes)]
     nan = float("nan")
     figures: dict[str, float] = dict(q_mean=nan, mc_return_mean=nan, q_corr=nan, q_scale=nan, soft_return_mean=nan)
     figures.update(q_corr_soft=nan, entropy_bonus_mean=nan, kl_per_entity=nan, argmax_changed=nan)
     within = slice(0, limit)  # the states and rewards of the episodes proper
-    rewards = np.concatenate([e["rewards"][within] for e in sampled])
+    timing = getattr(model, "reward_timing", "completion")
+    learned = "commitment" if timing == "commitment" else "rewards"  # the reward the stage-1 critic learns
+    rewards = np.concatenate([e[learned][within] for e in sampled])
     if policy.actor is not None and policy.critic is not None:
         q, g, g_soft, bonus, kl, changed = [], [], [], [], [], []
         for e in sampled:
@@ -179,8 +190,8 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             entropy = state_entropy(dist, view, per_entity).cpu().numpy()  # the bonus's H(s_t) for t = 0..T
             bonus_t = gamma * alpha * entropy[1:] * (1 - np.r_[np.zeros(len(e["rewards"]) - 1), float(e["terminated"])])
             bonus.append(bonus_t[within])
-            g.append(_discounted(e["rewards"], gamma)[within])
-            g_soft.append(_discounted(e["rewards"] + bonus_t, gamma)[within])
+            g.append(_discounted(e[learned], gamma)[within])
+            g_soft.append(_discounted(e[learned] + bonus_t, gamma)[within])
             n = len(g[-1])
             states = ObsView(*(x[:n] for x in view))  # the states decided in within the limit
             assign = th.as_tensor(np.stack(e["candidates"][:n]), device=model.device).transpose(1, 2).float()
@@ -212,6 +223,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         env=env_id,
         episodes=episodes,
         gamma=gamma,
+        reward_timing=timing,
         ent_coef=alpha,
         sampled_return=float(np.mean([e["rewards"][within].sum() for e in sampled])),
         deterministic_return=float(np.mean([e["rewards"].sum() for e in deterministic])),
