@@ -213,6 +213,32 @@ def test_heuristic_init_follows_the_cost_rules():
     assert (plain.selector.head.dyn.weight[0, :-1] != 0).all()  # PyTorch's default init: every feature weighed
 
 
+def test_rule_weights_set_the_pre_assign_rule(tmp_path):
+    """``rule_weights`` replace the rule's weights by feature name: with only the margin weighed, every free entity goes
+    to the open task of its largest margin (reward − pair cost); the weights are saved with the model; an unknown
+    feature or a rule without the pair term is refused by name."""
+    from sb3_taskalloc import TwoStageSAC
+
+    env = gym.make("TaskAlloc/MT-v0")
+    policy = make_policy(env, rule_weights={"pair_cost": 0.0, "margin": 1.0})
+    assert policy.actor is not None
+    for seed in range(3):
+        view = parse_obs(batch([env.reset(seed=seed)[0]]))
+        free = view.assignable[0]
+        choice = policy.actor(view).get_actions(True)[0]
+        margin = (view.reward[0].unsqueeze(0) - view.pair_cost[0]).masked_fill(~view.valid[0], -th.inf)
+        th.testing.assert_close(margin[free, choice[free]], margin[free].max(-1).values)
+    with pytest.raises(ValueError, match="unknown pair features \\['distance'\\]"):
+        make_policy(env, rule_weights={"distance": 1.0})
+    with pytest.raises(ValueError, match="needs pair_features=True"):
+        make_policy(env, rule_weights={"margin": 1.0}, pair_features=False)
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", device="cpu", policy_kwargs={"rule_weights": {"margin": 3.0}})
+    model.save(tmp_path / "m.zip")
+    loaded = TwoStageSAC.load(tmp_path / "m.zip", device="cpu")
+    assert loaded.policy.rule_weights == {"margin": 3.0}
+    th.testing.assert_close(loaded.policy.actor_prior.scorer.pair.weight, model.policy.actor_prior.scorer.pair.weight)
+
+
 def test_heuristic_init_beats_default_init_untrained():
     """The rule-initialised policy allocates far better than PyTorch's default init before any learning (RBF)."""
     env = gym.make("TaskAlloc/RBF-v0")

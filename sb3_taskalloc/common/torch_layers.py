@@ -136,10 +136,10 @@ def parse_obs(obs: dict[str, th.Tensor]) -> ObsView:
     )
 
 
+#: Names of the fixed pair features of :func:`pair_basis`, in order.
+PAIR_FEATURE_NAMES = ("pair_cost", "coverage", "margin", "margin_positive", "sole_cover")
 #: Number of fixed pair features of :func:`pair_basis`.
-PAIR_FEATURES = 5
-#: Index of the symlog pair cost in :func:`pair_basis`.
-PAIR_COST = 0
+PAIR_FEATURES = len(PAIR_FEATURE_NAMES)
 
 
 def pair_basis(pair_cost: th.Tensor, cover: th.Tensor, reward: th.Tensor) -> th.Tensor:

@@ -17,7 +17,15 @@ from torch import nn
 from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, TeamValue
 from sb3_taskalloc.common.policies import AMIXCritic, GlobalCritic, PreAssignActor, SelectCritic, Selector, TwinCritic
-from sb3_taskalloc.common.torch_layers import PAIR_COST, UNIT_COST, FlatScorer, ObsView, PairScorer, PointerHead, parse_obs
+from sb3_taskalloc.common.torch_layers import (
+    PAIR_FEATURE_NAMES,
+    UNIT_COST,
+    FlatScorer,
+    ObsView,
+    PairScorer,
+    PointerHead,
+    parse_obs,
+)
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
@@ -72,6 +80,10 @@ class TAMPolicy(BasePolicy):
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
         learning then corrects the rules. ``False``: PyTorch's default initialisation (the paper)
+    :param rule_weights: with ``heuristic_init``, the pre-assign rule's weights on the fixed pair features by name
+        (:data:`~sb3_taskalloc.common.torch_layers.PAIR_FEATURE_NAMES`), over the default ``{"pair_cost": -3.0}``
+        (the rest 0). An env's rule is data of its zoo config: where a task's margin matters more than the distance
+        to it, e.g. ``{"margin": 3.0}`` lets entities gather at the tasks worth their cost
     :param activation_fn: activation of the MLPs (paper: ReLU)
     :param optimizer_class: optimizer of every network
     :param optimizer_kwargs: extra optimizer arguments
@@ -102,6 +114,7 @@ class TAMPolicy(BasePolicy):
         select_logit_scale: float = 1.0,
         n_critics: int = 2,
         heuristic_init: bool = True,
+        rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
@@ -148,6 +161,19 @@ class TAMPolicy(BasePolicy):
         self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
         self.heuristic_init = heuristic_init
+        self.rule_weights = dict(rule_weights or {})
+        if self.rule_weights:
+            unknown = sorted(set(self.rule_weights) - set(PAIR_FEATURE_NAMES))
+            if unknown:
+                raise ValueError(f"rule_weights: unknown pair features {unknown}; choose from {list(PAIR_FEATURE_NAMES)}")
+            if not (heuristic_init and pair_features and preassign and encoder == "tam"):
+                raise ValueError(
+                    "rule_weights set the pre-assign rule of heuristic_init=True, which needs pair_features=True, "
+                    "preassign=True and encoder='tam'"
+                )
+            bad = {k: v for k, v in self.rule_weights.items() if not (isinstance(v, int | float) and math.isfinite(v))}
+            if bad:
+                raise ValueError(f"rule_weights must be finite numbers, got {bad}")
         self.activation_fn = activation_fn
         self._build(lr_schedule)
 
@@ -248,7 +274,8 @@ class TAMPolicy(BasePolicy):
         scorer = self.actor.scorer if self.actor is not None else None
         if isinstance(scorer, PairScorer) and scorer.pair is not None:
             scorer.pair.weight.zero_()
-            scorer.pair.weight[0, PAIR_COST] = HEURISTIC_INIT["pair_cost"]
+            for name, weight in {"pair_cost": HEURISTIC_INIT["pair_cost"], **self.rule_weights}.items():
+                scorer.pair.weight[0, PAIR_FEATURE_NAMES.index(name)] = weight
             scorer.pair.bias.zero_()
             _scale_last_layer(scorer.encoder.f_g, gain)
         head = self.selector.head
@@ -276,6 +303,7 @@ class TAMPolicy(BasePolicy):
                 select_logit_scale=self.select_logit_scale,
                 n_critics=self.n_critics,
                 heuristic_init=self.heuristic_init,
+                rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
