@@ -230,8 +230,10 @@ def test_rule_weights_set_the_pre_assign_rule(tmp_path):
         th.testing.assert_close(margin[free, choice[free]], margin[free].max(-1).values)
     with pytest.raises(ValueError, match="unknown pair features \\['distance'\\]"):
         make_policy(env, rule_weights={"distance": 1.0})
-    with pytest.raises(ValueError, match="needs pair_features=True"):
-        make_policy(env, rule_weights={"margin": 1.0}, pair_features=False)
+    with pytest.raises(ValueError, match="got heuristic_init=False"):
+        make_policy(env, rule_weights={"margin": 1.0}, heuristic_init=False)
+    for ablation in ({"encoder": "mlp"}, {"preassign": False}):  # no pair read-out: nothing to set (the table's rows)
+        make_policy(env, rule_weights={"margin": 1.0}, **ablation)
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", device="cpu", policy_kwargs={"rule_weights": {"margin": 3.0}})
     model.save(tmp_path / "m.zip")
     loaded = TwoStageSAC.load(tmp_path / "m.zip", device="cpu")

@@ -83,7 +83,9 @@ class TAMPolicy(BasePolicy):
     :param rule_weights: with ``heuristic_init``, the pre-assign rule's weights on the fixed pair features by name
         (:data:`~sb3_taskalloc.common.torch_layers.PAIR_FEATURE_NAMES`), over the default ``{"pair_cost": -3.0}``
         (the rest 0). An env's rule is data of its zoo config: where a task's margin matters more than the distance
-        to it, e.g. ``{"margin": 3.0}`` lets entities gather at the tasks worth their cost
+        to it, e.g. ``{"margin": 3.0}`` lets entities gather at the tasks worth their cost. Policies without the
+        pre-assign pair read-out (``preassign=False``, ``encoder="mlp"``, ``pair_features=False``) have no such rule
+        and ignore them, as they ignore ``HEURISTIC_INIT["pair_cost"]``
     :param activation_fn: activation of the MLPs (paper: ReLU)
     :param optimizer_class: optimizer of every network
     :param optimizer_kwargs: extra optimizer arguments
@@ -166,11 +168,8 @@ class TAMPolicy(BasePolicy):
             unknown = sorted(set(self.rule_weights) - set(PAIR_FEATURE_NAMES))
             if unknown:
                 raise ValueError(f"rule_weights: unknown pair features {unknown}; choose from {list(PAIR_FEATURE_NAMES)}")
-            if not (heuristic_init and pair_features and preassign and encoder == "tam"):
-                raise ValueError(
-                    "rule_weights set the pre-assign rule of heuristic_init=True, which needs pair_features=True, "
-                    "preassign=True and encoder='tam'"
-                )
+            if not heuristic_init:
+                raise ValueError("rule_weights set the initial rule of heuristic_init=True; got heuristic_init=False")
             bad = {k: v for k, v in self.rule_weights.items() if not (isinstance(v, int | float) and math.isfinite(v))}
             if bad:
                 raise ValueError(f"rule_weights must be finite numbers, got {bad}")
