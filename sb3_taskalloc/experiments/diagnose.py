@@ -16,6 +16,9 @@
 - the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
   changed;
 - sampled against deterministic return, on the same evaluation seeds;
+- which stage's learning the deterministic return owes to: the return with the pre-assign actor learned and the pointer
+  at its initial rule, and the other way round (:func:`stage_returns`). Each stage learns against the other's current
+  behaviour, so the two gains need not add up; a stage whose swap scores above the model is one whose learning hurts;
 - what becomes of the open tasks in the deterministic episodes (:func:`task_outcomes`): the shares of open tasks per
   step whose team is kept, whose candidates fall short of the demand, whose candidates cover it without profit, and
   that have no candidates. A per-entity pre-assignment that leaves most open tasks short or empty is where a
@@ -24,6 +27,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -51,6 +55,8 @@ class Diagnosis:
     ent_coef: float
     sampled_return: float
     deterministic_return: float
+    actor_only_return: float
+    selector_only_return: float
     q_mean: float
     mc_return_mean: float
     q_corr: float
@@ -70,6 +76,10 @@ class Diagnosis:
         """A Markdown table of the figures."""
         rows = [
             ("return, sampled / deterministic", f"{self.sampled_return:.2f} / {self.deterministic_return:.2f}"),
+            (
+                "deterministic return, only the pre-assign actor learned / only the pointer learned",
+                f"{self.actor_only_return:.2f} / {self.selector_only_return:.2f}",
+            ),
             ("critic Q, mean", f"{self.q_mean:.3f}"),
             ("Monte-Carlo return G, mean", f"{self.mc_return_mean:.3f}"),
             ("corr(Q, G), scale Q/G", f"{self.q_corr:.3f}, {self.q_scale:.3f}"),
@@ -117,6 +127,26 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
         "commitment": np.asarray(credits),
         "terminated": terminated,
     }
+
+
+def stage_returns(model: Any, env: gym.Env, seeds: list[int]) -> tuple[float, float]:
+    """Mean deterministic return on ``seeds`` with one stage reset to its initial rule (the frozen priors π₀ of
+    implementation detail 12): (pre-assign actor learned and pointer initial, pre-assign actor initial and pointer
+    learned). NaN without a pre-assign actor. The model is restored afterwards."""
+    policy = model.policy
+    if policy.actor is None or policy.actor_prior is None:
+        return math.nan, math.nan
+    saved = {name: copy.deepcopy(getattr(policy, name).state_dict()) for name in ("actor", "selector")}
+    out = []
+    try:
+        for reset, prior in (("selector", "selector_prior"), ("actor", "actor_prior")):
+            getattr(policy, reset).load_state_dict(getattr(policy, prior).state_dict())
+            out.append(float(np.mean([_episode(model, env, s, deterministic=True)["rewards"].sum() for s in seeds])))
+            getattr(policy, reset).load_state_dict(saved[reset])
+    finally:
+        for name, state in saved.items():
+            getattr(policy, name).load_state_dict(state)
+    return out[0], out[1]
 
 
 def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.ndarray, tol: float = COVER_TOL) -> np.ndarray:
@@ -215,6 +245,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             figures.update(
                 kl_per_entity=float(np.concatenate(kl).mean()), argmax_changed=float(np.concatenate(changed).mean())
             )
+    actor_only, selector_only = stage_returns(model, env, [seed + k for k in range(episodes)])
     decisions = [d for e in deterministic for d in zip(e["obs"][:-1], e["candidates"], e["kept"], strict=True)]
     counts = np.sum([task_outcomes(*d) for d in decisions], axis=0) if decisions else np.zeros(4)
     shares = counts / max(float(counts.sum()), 1.0)
@@ -227,6 +258,8 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         ent_coef=alpha,
         sampled_return=float(np.mean([e["rewards"][within].sum() for e in sampled])),
         deterministic_return=float(np.mean([e["rewards"].sum() for e in deterministic])),
+        actor_only_return=actor_only,
+        selector_only_return=selector_only,
         abs_reward_mean=float(np.abs(rewards).mean()),
         **figures,
     )
