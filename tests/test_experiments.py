@@ -231,9 +231,10 @@ def test_diagnose_reads_the_critic_against_the_reward_it_learns():
     assert "credited at commitment" in credited.table()
 
 
-def test_learning_experiment_rediagnoses_records_of_commitment_critics(tmp_path):
+def test_learning_experiment_completes_records_of_earlier_versions(tmp_path):
     """A finished seed whose critic figures predate ``critic_reward`` is measured again from its saved model when the
-    critic learned the commitment reward, and kept with a warning when the model is gone."""
+    critic learned the commitment reward, and kept with a warning when the model is gone; one without the stage
+    columns gets them from the saved model."""
     import json
 
     from sb3_taskalloc.experiments import learn
@@ -247,6 +248,8 @@ def test_learning_experiment_rediagnoses_records_of_commitment_critics(tmp_path)
     path.write_text(json.dumps(stale))
     again = run.run_seed(0)
     assert again["q_corr"] == pytest.approx(record["q_corr"]) and json.loads(path.read_text())["critic_reward"] == "commitment"
+    path.write_text(json.dumps({k: v for k, v in record.items() if k not in ("actor_only", "pointer_only")}))
+    assert run.run_seed(0)["pointer_only"] == record["pointer_only"] and "actor_only" in json.loads(path.read_text())
     path.write_text(json.dumps(stale))
     path.with_suffix(".zip").unlink()
     with pytest.warns(UserWarning, match="is gone"):
@@ -308,11 +311,13 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     )
     monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
     text = run.run(progress=False).read_text()
-    assert "| seed | untrained | trained | Greedy | MILP | GeneticAlgorithm |" in text and "trained > Greedy:" in text
+    header = "| seed | untrained | trained | only actor learned | only pointer learned | Greedy | MILP | GeneticAlgorithm |"
+    assert header in text and "trained > Greedy:" in text
     data = json.loads((tmp_path / "EPT.json").read_text())
     assert [r["seed"] for r in data["seeds"]] == [0, 1]
     for record in data["seeds"]:
         assert set(record["eval_seeds"]).isdisjoint(range(10_000)) and len(record["trained"]) == 2
+        assert len(record["actor_only"]) == len(record["pointer_only"]) == 2
         assert [p[0] for p in record["curve"]] == [0, 5, 10]
     assert (tmp_path / "EPT.png").stat().st_size > 0
     assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
@@ -355,7 +360,7 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
                            out=tmp_path)  # fmt: skip
     assert run.key != plain.key  # a selected checkpoint is another result
     text = run.run(progress=False).read_text()
-    assert "| seed | untrained | trained | best on validation | Greedy | MILP |" in text
+    assert "| trained | only actor learned | only pointer learned | best on validation | Greedy | MILP |" in text
     assert "best on validation / untrained (means):" in text and "--validation-episodes 2" in text
     (record,) = json.loads((tmp_path / "EPT.json").read_text())["seeds"]
     validation = learn.validation_seeds(0, 2)

@@ -30,9 +30,11 @@ from __future__ import annotations
 import copy
 import json
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -129,23 +131,28 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
     }
 
 
-def stage_returns(model: Any, env: gym.Env, seeds: list[int]) -> tuple[float, float]:
-    """Mean deterministic return on ``seeds`` with one stage reset to its initial rule (the frozen priors π₀ of
-    implementation detail 12): (pre-assign actor learned and pointer initial, pre-assign actor initial and pointer
-    learned). NaN without a pre-assign actor. The model is restored afterwards."""
-    policy = model.policy
-    if policy.actor is None or policy.actor_prior is None:
-        return math.nan, math.nan
-    saved = {name: copy.deepcopy(getattr(policy, name).state_dict()) for name in ("actor", "selector")}
-    out = []
+@contextmanager
+def stage_reset(policy: Any, stage: Literal["actor", "selector"]) -> Iterator[None]:
+    """Within the block, ``policy``'s pre-assign actor or pointer (``stage``) is back at its initial rule (the frozen
+    prior π₀ of implementation detail 12); its learned weights return on leaving."""
+    module = getattr(policy, stage)
+    saved = copy.deepcopy(module.state_dict())
+    module.load_state_dict(getattr(policy, f"{stage}_prior").state_dict())
     try:
-        for reset, prior in (("selector", "selector_prior"), ("actor", "actor_prior")):
-            getattr(policy, reset).load_state_dict(getattr(policy, prior).state_dict())
-            out.append(float(np.mean([_episode(model, env, s, deterministic=True)["rewards"].sum() for s in seeds])))
-            getattr(policy, reset).load_state_dict(saved[reset])
+        yield
     finally:
-        for name, state in saved.items():
-            getattr(policy, name).load_state_dict(state)
+        module.load_state_dict(saved)
+
+
+def stage_returns(model: Any, env: gym.Env, seeds: list[int]) -> tuple[float, float]:
+    """Mean deterministic return on ``seeds`` with one stage at its initial rule: (pre-assign actor learned and pointer
+    initial, pre-assign actor initial and pointer learned); NaN without a pre-assign actor."""
+    if model.policy.actor is None or model.policy.actor_prior is None:
+        return math.nan, math.nan
+    out = []
+    for reset in ("selector", "actor"):
+        with stage_reset(model.policy, reset):  # type: ignore[arg-type]
+            out.append(float(np.mean([_episode(model, env, s, deterministic=True)["rewards"].sum() for s in seeds])))
     return out[0], out[1]
 
 

@@ -165,8 +165,7 @@ class LearnRun:
         """Train and evaluate one seed (or read it back when it was finished before)."""
         path = self.seed_path(seed)
         if path.exists():
-            done = json.loads(path.read_text())
-            return done if "critic_reward" in done else self._rediagnose(done, path)
+            return self._complete(json.loads(path.read_text()), path)
         from sb3_taskalloc import TwoStageSAC
 
         seeds = eval_seeds(seed, self.eval_episodes)
@@ -183,6 +182,7 @@ class LearnRun:
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["trained"] = episode_returns(model, self.env_id, seeds)
+        record.update(self._stages(model, seeds))
         record["curve"] = curve.points
         record.update(self._diagnose(model, seed))
         record.update(self.baselines(seed))
@@ -201,19 +201,45 @@ class LearnRun:
         d = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
         return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing)
 
-    def _rediagnose(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
-        """A record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
-        critic's own reward unless it learned the commitment reward: then the figures are measured again from the
-        saved model (kept as they are, with a warning, when the model is gone)."""
-        if self.hyperparameters.get("reward_timing", "completion") != "commitment":
-            return {**record, "critic_reward": "completion"}
+    def _stages(self, model: Any, seeds: list[int]) -> dict[str, list[float]]:
+        """The trained model with one stage back at its initial rule, on the held-out episodes: which stage's learning
+        the trained return owes to (:func:`.diagnose.stage_reset`); nothing without a pre-assign actor."""
+        from sb3_taskalloc.experiments.diagnose import stage_reset
+
+        if model.policy.actor is None:
+            return {}
+        out = {}
+        for column, reset in (("actor_only", "selector"), ("pointer_only", "actor")):
+            with stage_reset(model.policy, reset):  # type: ignore[arg-type]
+                out[column] = episode_returns(model, self.env_id, seeds)
+        return out
+
+    def _complete(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
+        """A finished seed, with what later versions measure added from its saved model (and saved):
+
+        - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
+          critic's own reward unless it learned the commitment reward: then the figures are measured again;
+        - a record without ``actor_only`` gets the returns of :meth:`_stages`.
+
+        Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
+        """
+        stale = "critic_reward" not in record and self.hyperparameters.get("reward_timing", "completion") == "commitment"
+        if "critic_reward" not in record and not stale:
+            record = {**record, "critic_reward": "completion"}
+        if not stale and "actor_only" in record:
+            return record
         zip_path = path.with_suffix(".zip")
         if not zip_path.exists():
-            warnings.warn(f"{path}: critic figures measured against the env reward, and {zip_path.name} is gone", stacklevel=2)
+            if stale:
+                warnings.warn(f"{path}: critic figures measured against the env reward, {zip_path.name} is gone", stacklevel=2)
             return record
         from sb3_taskalloc import TwoStageSAC
 
-        record = {**record, **self._diagnose(TwoStageSAC.load(zip_path, device="cpu"), record["seed"])}
+        model = TwoStageSAC.load(zip_path, device="cpu")
+        if stale:
+            record = {**record, **self._diagnose(model, record["seed"])}
+        if "actor_only" not in record:
+            record = {**record, **self._stages(model, record["eval_seeds"])}
         atomic_write_text(path, json.dumps(record) + "\n")
         return record
 
@@ -271,7 +297,8 @@ class LearnRun:
         from sb3_taskalloc.experiments.plots import plot_learning_progress
 
         selected = ["best"] if all("best" in r for r in records) else []
-        columns = ["untrained", "trained", *selected, "Greedy", "MILP", *self.planners]
+        stages = ["actor_only", "pointer_only"] if all("actor_only" in r for r in records) else []
+        columns = ["untrained", "trained", *stages, *selected, "Greedy", "MILP", *self.planners]
         means = {c: [float(np.mean(r[c])) for r in records] for c in columns}
         best_planner = max(self.planners, key=lambda p: float(np.mean(means[p]))) if self.planners else None
         stem = Path(self.out) / self.env
@@ -283,8 +310,9 @@ class LearnRun:
             f"{self.env_id}: deterministic return on {'validation' if self.validation_episodes else 'held-out'} episodes "
             "while training",
         )
-        shown = ["untrained", "trained", *selected, "Greedy", "MILP", *([best_planner] if best_planner else [])]
-        headers = ["best on validation" if c == "best" else c for c in shown]
+        shown = ["untrained", "trained", *stages, *selected, "Greedy", "MILP", *([best_planner] if best_planner else [])]
+        names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned"}
+        headers = [names.get(c, c) for c in shown]
         lines = [
             f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
             "episodes",
@@ -298,6 +326,15 @@ class LearnRun:
                     "",
                 ]
                 if selected
+                else []
+            ),
+            *(
+                [
+                    "Only actor / pointer learned: the final model with the other stage back at its initial rule (which "
+                    "stage's learning the trained return owes to).",
+                    "",
+                ]
+                if stages
                 else []
             ),
             "| seed | " + " | ".join(headers) + " | corr(Q, G) | scale Q/G | training s |",
