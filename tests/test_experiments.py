@@ -124,6 +124,29 @@ def test_cells_written_without_a_config_are_kept_but_not_used(tmp_path):
     assert [(r["value"], r["config"]) for r in rows] == [("5.0", ""), ("7.0", run.cell_key("Greedy", "train"))]
 
 
+def test_table_trains_on_the_zoo_configs_n_envs(tmp_path, monkeypatch):
+    """A zoo config with ``n_envs`` (rl-zoo3's key for vectorised collection) trains the TwoStageSAC columns on that many
+    envs, each logging its episodes; the curves merge the logs, and the zero-shot and few-shot rows load the model on
+    one env of another size."""
+    from sb3_taskalloc.experiments import table
+
+    zoo = table.zoo_hyperparameters
+    monkeypatch.setattr(table, "zoo_hyperparameters", lambda env_id: {**zoo(env_id), "n_envs": 2})
+    run = TableRun("RBF", 1, "smoke", tmp_path, methods=["Ours"], progress=False)
+    run.run()
+    model = run.trained("Ours", 0)
+    assert model.n_envs == 2 and model.num_timesteps == run.budget.steps("RBF", run.budget.train_episodes)
+    logs = table.env_logs(run._log_path("Ours", 0), 2)
+    assert all(log.exists() for log in logs) and not run._log_path("Ours", 0).exists()
+    per_env = [len(log.read_text().strip().splitlines()) - 2 for log in logs]
+    assert len(table.logged_returns(run._log_path("Ours", 0))) == sum(per_env) > 0
+    cells = {(r["row"]): r["value"] for r in csv.DictReader(run.cells_path.open())}
+    assert all(np.isfinite(float(cells[row])) for row in ("train", "zero-shot (entity)", "few-shot (entity)"))
+    few_shot = table.env_logs(run._log_path("Ours", 0, "few-shot (entity)"), 2)  # fine-tuned on 2 envs of the preset
+    assert all(log.exists() for log in few_shot)
+    assert (run.folder / "curves.png").exists()
+
+
 def test_table_rejects_bad_arguments():
     with pytest.raises(ValueError, match="env"):
         TableRun("Foo", 1, "smoke")

@@ -48,6 +48,27 @@ from sb3_taskalloc.experiments.budgets import (
 )
 
 
+def env_logs(log: Path, n_envs: int) -> list[Path]:
+    """The Monitor logs of ``n_envs`` envs that train one model: ``log`` itself for one env, else one file per env
+    beside it (``<stem>.env<k>.monitor.csv``)."""
+    if n_envs == 1:
+        return [log]
+    stem = log.name.removesuffix(".monitor.csv")
+    return [log.with_name(f"{stem}.env{k}.monitor.csv") for k in range(n_envs)]
+
+
+def logged_returns(log: Path) -> np.ndarray:
+    """Training episode returns in the order the episodes ended, from ``log`` or, for a model trained on several envs,
+    from its per-env logs (:func:`env_logs`) merged by end time; empty when there is none."""
+    paths = [log] if log.exists() else sorted(log.parent.glob(log.name.removesuffix(".monitor.csv") + ".env*.monitor.csv"))
+    ends = []
+    for path in paths:
+        for row in path.read_text().strip().splitlines()[2:]:  # Monitor: a JSON line, then the header r,l,t
+            r, _, t = row.split(",")[:3]
+            ends.append((float(t), float(r)))
+    return np.array([r for _, r in sorted(ends)])
+
+
 def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name).strip("_").lower()
 
@@ -183,8 +204,28 @@ class TableRun:
         return self.folder / "models" / f"{_slug(method)}_s{seed}_{_slug(row)}_{key}.zip"
 
     def _log_path(self, method: str, seed: int, row: str = "train") -> Path:
-        """The Monitor log of training a model: named like the model, so logs of other settings are kept apart."""
+        """The Monitor log of training a model: named like the model, so logs of other settings are kept apart. With
+        ``n_envs`` > 1 each env logs to its own file beside it (:func:`env_logs`)."""
         return self.folder / "logs" / f"{self._model_path(method, seed, row).stem}.monitor.csv"
+
+    def _n_envs(self, method: Method) -> int:
+        """Envs a TwoStageSAC column collects from at once (the zoo config's ``n_envs``, as rl-zoo3 reads it)."""
+        train_id = row_env(self.env, "train")
+        assert train_id is not None
+        return int(zoo_hyperparameters(train_id).get("n_envs", 1)) if method.kind == "sac" else 1
+
+    def _train_env(self, env_id: str, log: Path, n_envs: int) -> Any:
+        """A Monitor-wrapped env of ``env_id`` logging to ``log``, or with ``n_envs`` > 1 a DummyVecEnv of them."""
+        from stable_baselines3.common.monitor import Monitor
+        from stable_baselines3.common.vec_env import DummyVecEnv
+
+        if n_envs == 1:
+            return Monitor(self.budget.make(env_id), filename=str(log))
+
+        def make(path: Path) -> Callable[[], Any]:
+            return lambda: Monitor(self.budget.make(env_id), filename=str(path))
+
+        return DummyVecEnv([make(path) for path in env_logs(log, n_envs)])
 
     @staticmethod
     def _save(model: Any, path: Path) -> None:
@@ -203,17 +244,16 @@ class TableRun:
 
             vec = DummyVecEnv([lambda: Monitor(self.budget.make(env_id), filename=str(log))])
             return MaskablePPO("MultiInputPolicy", vec, seed=seed, **self.budget.ppo)
-        env = Monitor(self.budget.make(env_id), filename=str(log))
         train_id = row_env(self.env, "train")
         assert train_id is not None
         kwargs = {**zoo_hyperparameters(train_id), **self.budget.sac}  # the training env's settings on the presets too
+        env = self._train_env(env_id, log, int(kwargs.pop("n_envs", 1)))
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 
     def _load(self, method: Method, path: Path, env_id: str | None = None, log: Path | None = None) -> Any:
-        from stable_baselines3.common.monitor import Monitor
-
-        env = Monitor(self.budget.make(env_id), filename=str(log) if log else None) if env_id else None
+        """The model saved at ``path``, with a training env of ``env_id`` logging to ``log`` when given."""
+        env = self._train_env(env_id, log, self._n_envs(method)) if env_id and log else None
         if method.kind == "ppo":
             from sb3_contrib import MaskablePPO
 
@@ -281,8 +321,8 @@ class TableRun:
         if not same_size and not (method.kind == "sac" and model.policy.size_agnostic):
             return "n/a:size"
         if row.startswith("zero-shot"):
-            if not same_size:
-                model.set_env(target)  # the TAM policy adopts the preset's entity/task counts
+            if not same_size:  # the TAM policy adopts the preset's entity/task counts (``load`` takes any env count)
+                model = type(model).load(self._model_path(name, seed), env=target)
             return f"{evaluate(model, env_id, budget, seed, method):.6g}"
         path = self._model_path(name, seed, row)
         log = self._log_path(name, seed, row)
@@ -409,10 +449,9 @@ class TableRun:
         for name in self.methods:
             runs = []
             for seed in range(self.seeds):
-                log = self._log_path(name, seed)
-                if log.exists():
-                    rows = log.read_text().strip().splitlines()[2:]  # Monitor: a JSON line, then the header
-                    runs.append(np.array([float(r.split(",")[0]) for r in rows]))
+                returns = logged_returns(self._log_path(name, seed))
+                if len(returns):
+                    runs.append(returns)
             if runs and min(len(r) for r in runs) > 0:
                 n = min(len(r) for r in runs)
                 curves[name] = np.mean([r[:n] for r in runs], axis=0)
