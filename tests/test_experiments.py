@@ -279,6 +279,17 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path):
         assert run.run_seed(0)["q_corr"] == 99.0
 
 
+def test_diagnose_cli_trains_on_n_envs(tmp_path):
+    """``diagnose --algo-kwargs "{n_envs: 2}"`` trains on a VecEnv of 2 envs (the zoo's key), as ``learn`` does."""
+    import json
+
+    from sb3_taskalloc.experiments.__main__ import main
+
+    kwargs = "{n_envs: 2, learning_starts: 10, batch_size: 8, policy_kwargs: {hidden_dim: 8}}"
+    main(["diagnose", "--env", "EPT", "--steps", "40", "--episodes", "1", "--out", str(tmp_path), "--algo-kwargs", kwargs])
+    assert json.loads((tmp_path / "diagnose_EPT-v0.json").read_text())["episodes"] == 1
+
+
 def test_task_outcomes_classify_each_open_task():
     """Open tasks: kept, short of demand, covered without profit, no candidates; closed task slots are not counted."""
     from sb3_taskalloc.experiments.diagnose import task_outcomes

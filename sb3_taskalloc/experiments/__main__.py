@@ -119,8 +119,12 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
     if args.model:
         model = TwoStageSAC.load(args.model, device="cpu")
     else:
+        from stable_baselines3.common.env_util import make_vec_env
+
         kwargs = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
-        model = TwoStageSAC("TAMPolicy", env_id, seed=args.seed, device="cpu", **kwargs)
+        n_envs = int(kwargs.pop("n_envs", 1))  # vectorised collection (the zoo's key)
+        env = make_vec_env(env_id, n_envs=n_envs, seed=args.seed) if n_envs > 1 else env_id
+        model = TwoStageSAC("TAMPolicy", env, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)
     path = write(diagnose(model, env_id, args.episodes), args.out)
