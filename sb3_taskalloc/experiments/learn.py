@@ -4,6 +4,8 @@
 on the same held-out episodes per seed (reset seeds ``10_000 + 100·seed + k``, never a training seed):
 
 - the same policy untrained (its initial rule), and trained;
+- the trained policy with only the pre-assign actor learned and with only the pointer learned (the other stage back at
+  its initial rule, :func:`~sb3_taskalloc.experiments.diagnose.stage_reset`): which stage's learning the result owes to;
 - Greedy, the per-step MILP and the receding-horizon planners (the best of them is reported);
 - the critic at the end of training (:func:`~sb3_taskalloc.experiments.diagnose.diagnose`: correlation and scale of Q
   against Monte-Carlo returns).
