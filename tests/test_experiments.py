@@ -224,9 +224,9 @@ def test_diagnose_measures_calibration_and_drift(tmp_path):
     moved = diagnose(model, "TaskAlloc/EPT-v0", episodes=1)
     assert moved.kl_per_entity > 1e-3 and moved.argmax_changed > 0
     # Untrained, both stages are their rules; with only the actor moved, resetting either stage isolates it.
-    assert fresh.actor_only_return == fresh.selector_only_return == fresh.deterministic_return
-    assert moved.actor_only_return == moved.deterministic_return != moved.selector_only_return
-    assert moved.selector_only_return == fresh.deterministic_return
+    assert fresh.actor_only_return == fresh.pointer_only_return == fresh.deterministic_return
+    assert moved.actor_only_return == moved.deterministic_return != moved.pointer_only_return
+    assert moved.pointer_only_return == fresh.deterministic_return
     assert diagnose(model, "TaskAlloc/EPT-v0", episodes=1).deterministic_return == moved.deterministic_return  # restored
     path = write(moved, tmp_path)
     assert "corr(Q, G)" in path.read_text() and path.with_suffix(".json").exists()

@@ -58,7 +58,7 @@ class Diagnosis:
     sampled_return: float
     deterministic_return: float
     actor_only_return: float
-    selector_only_return: float
+    pointer_only_return: float
     q_mean: float
     mc_return_mean: float
     q_corr: float
@@ -80,7 +80,7 @@ class Diagnosis:
             ("return, sampled / deterministic", f"{self.sampled_return:.2f} / {self.deterministic_return:.2f}"),
             (
                 "deterministic return, only the pre-assign actor learned / only the pointer learned",
-                f"{self.actor_only_return:.2f} / {self.selector_only_return:.2f}",
+                f"{self.actor_only_return:.2f} / {self.pointer_only_return:.2f}",
             ),
             ("critic Q, mean", f"{self.q_mean:.3f}"),
             ("Monte-Carlo return G, mean", f"{self.mc_return_mean:.3f}"),
@@ -252,7 +252,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             figures.update(
                 kl_per_entity=float(np.concatenate(kl).mean()), argmax_changed=float(np.concatenate(changed).mean())
             )
-    actor_only, selector_only = stage_returns(model, env, [seed + k for k in range(episodes)])
+    actor_only, pointer_only = stage_returns(model, env, [seed + k for k in range(episodes)])
     decisions = [d for e in deterministic for d in zip(e["obs"][:-1], e["candidates"], e["kept"], strict=True)]
     counts = np.sum([task_outcomes(*d) for d in decisions], axis=0) if decisions else np.zeros(4)
     shares = counts / max(float(counts.sum()), 1.0)
@@ -266,7 +266,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         sampled_return=float(np.mean([e["rewards"][within].sum() for e in sampled])),
         deterministic_return=float(np.mean([e["rewards"].sum() for e in deterministic])),
         actor_only_return=actor_only,
-        selector_only_return=selector_only,
+        pointer_only_return=pointer_only,
         abs_reward_mean=float(np.abs(rewards).mean()),
         **figures,
     )
