@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
+    from sb3_taskalloc.experiments.budgets import training_env, zoo_hyperparameters
     from sb3_taskalloc.experiments.diagnose import diagnose, write
 
     if args.steps < 0 or args.episodes < 1:
@@ -119,11 +119,7 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
     if args.model:
         model = TwoStageSAC.load(args.model, device="cpu")
     else:
-        from stable_baselines3.common.env_util import make_vec_env
-
-        kwargs = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
-        n_envs = int(kwargs.pop("n_envs", 1))  # vectorised collection (the zoo's key)
-        env = make_vec_env(env_id, n_envs=n_envs, seed=args.seed) if n_envs > 1 else env_id
+        env, kwargs = training_env(env_id, {**zoo_hyperparameters(env_id), **args.algo_kwargs}, args.seed)
         model = TwoStageSAC("TAMPolicy", env, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)

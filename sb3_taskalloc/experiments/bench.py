@@ -319,11 +319,9 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     deterministic mean return on seed k's held-out episodes (those of ``experiments learn``) reaches
     :data:`LEARN_TARGET` × the same policy untrained on them, or ``--learn-steps`` env steps. It is evaluated every
     ``--eval-every`` env steps; the evaluations are not counted in the time. One row per training seed and device."""
-    from stable_baselines3.common.env_util import make_vec_env
-
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
+    from sb3_taskalloc.experiments.budgets import training_env, zoo_hyperparameters
     from sb3_taskalloc.experiments.learn import Curve, episode_returns, eval_seeds
 
     env_id = "TaskAlloc/RBF-v0"
@@ -368,12 +366,11 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
                 self._evaluate()
 
     hyperparameters = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
-    n_envs = int(hyperparameters.pop("n_envs", 1))
     rows = []
     for device in _devices(args):
         for seed in range(args.seeds):
-            env = make_vec_env(env_id, n_envs=n_envs, seed=seed) if n_envs > 1 else env_id
-            model = TwoStageSAC("TAMPolicy", env, seed=seed, device=device, **hyperparameters)
+            env, kwargs = training_env(env_id, hyperparameters, seed)
+            model = TwoStageSAC("TAMPolicy", env, seed=seed, device=device, **kwargs)
             seeds = eval_seeds(seed, episodes)
             untrained = float(np.mean(episode_returns(model, env_id, seeds)))
             callback = ToTarget(seeds, LEARN_TARGET * untrained)
@@ -384,7 +381,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
                 {
                     "device": device,
                     "seed": seed,
-                    "n_envs": n_envs,
+                    "n_envs": model.n_envs,
                     "untrained": untrained,
                     "target_return": callback.target,
                     "reached": reached,

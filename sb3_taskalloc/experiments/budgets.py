@@ -132,6 +132,19 @@ def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str
     return block
 
 
+def training_env(env_id: str, hyperparameters: dict[str, Any], seed: int) -> tuple[Any, dict[str, Any]]:
+    """The env TwoStageSAC trains on under zoo-style ``hyperparameters``, and the keywords left for TwoStageSAC: with
+    ``n_envs`` > 1 (rl-zoo3's key for vectorised collection) a VecEnv of that many copies seeded from ``seed``, else
+    the env id itself."""
+    kwargs = dict(hyperparameters)
+    n_envs = int(kwargs.pop("n_envs", 1))
+    if n_envs == 1:
+        return env_id, kwargs
+    from stable_baselines3.common.env_util import make_vec_env
+
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed), kwargs
+
+
 def yaml_mapping(text: str) -> dict[str, Any]:
     """A command-line option's YAML (or JSON) mapping, e.g. ``"{entropy_bonus: mean}"``; anything else is an
     :class:`argparse.ArgumentTypeError` naming the text."""

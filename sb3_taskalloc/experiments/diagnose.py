@@ -144,16 +144,17 @@ def stage_reset(policy: Any, stage: Literal["actor", "selector"]) -> Iterator[No
         module.load_state_dict(saved)
 
 
-def stage_returns(model: Any, env: gym.Env, seeds: list[int]) -> tuple[float, float]:
-    """Mean deterministic return on ``seeds`` with one stage at its initial rule: (pre-assign actor learned and pointer
-    initial, pre-assign actor initial and pointer learned); NaN without a pre-assign actor."""
+def stage_returns(model: Any, env_id: str, seeds: list[int]) -> dict[str, list[float]]:
+    """Deterministic returns on ``seeds`` with one stage at its initial rule: ``"actor_only"`` (pre-assign actor
+    learned, pointer initial) and ``"pointer_only"`` (the other way round); empty without a pre-assign actor."""
     if model.policy.actor is None or model.policy.actor_prior is None:
-        return math.nan, math.nan
-    out = []
-    for reset in ("selector", "actor"):
+        return {}
+    env = gym.make(env_id)
+    out = {}
+    for column, reset in (("actor_only", "selector"), ("pointer_only", "actor")):
         with stage_reset(model.policy, reset):  # type: ignore[arg-type]
-            out.append(float(np.mean([_episode(model, env, s, deterministic=True)["rewards"].sum() for s in seeds])))
-    return out[0], out[1]
+            out[column] = [float(_episode(model, env, s, deterministic=True)["rewards"].sum()) for s in seeds]
+    return out
 
 
 def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.ndarray, tol: float = COVER_TOL) -> np.ndarray:
@@ -252,7 +253,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
             figures.update(
                 kl_per_entity=float(np.concatenate(kl).mean()), argmax_changed=float(np.concatenate(changed).mean())
             )
-    actor_only, pointer_only = stage_returns(model, env, [seed + k for k in range(episodes)])
+    stages = {k: float(np.mean(v)) for k, v in stage_returns(model, env_id, [seed + k for k in range(episodes)]).items()}
     decisions = [d for e in deterministic for d in zip(e["obs"][:-1], e["candidates"], e["kept"], strict=True)]
     counts = np.sum([task_outcomes(*d) for d in decisions], axis=0) if decisions else np.zeros(4)
     shares = counts / max(float(counts.sum()), 1.0)
@@ -265,8 +266,8 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         ent_coef=alpha,
         sampled_return=float(np.mean([e["rewards"][within].sum() for e in sampled])),
         deterministic_return=float(np.mean([e["rewards"].sum() for e in deterministic])),
-        actor_only_return=actor_only,
-        pointer_only_return=pointer_only,
+        actor_only_return=stages.get("actor_only", math.nan),
+        pointer_only_return=stages.get("pointer_only", math.nan),
         abs_reward_mean=float(np.abs(rewards).mean()),
         **figures,
     )

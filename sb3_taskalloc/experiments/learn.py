@@ -35,10 +35,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_taskalloc.common.utils import atomic_write_text
-from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, zoo_hyperparameters
+from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, training_env, zoo_hyperparameters
 
 #: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
 PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
@@ -169,11 +168,10 @@ class LearnRun:
         if path.exists():
             return self._complete(json.loads(path.read_text()), path)
         from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc.experiments.diagnose import stage_returns
 
         seeds = eval_seeds(seed, self.eval_episodes)
-        hyperparameters = dict(self.hyperparameters)
-        n_envs = int(hyperparameters.pop("n_envs", 1))  # vectorised collection: a VecEnv of n_envs copies (zoo's key)
-        env = make_vec_env(self.env_id, n_envs=n_envs, seed=seed) if n_envs > 1 else self.env_id
+        env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
         model = TwoStageSAC("TAMPolicy", env, seed=seed, device="cpu", **hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
         if self.validation_episodes:
@@ -184,7 +182,7 @@ class LearnRun:
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["trained"] = episode_returns(model, self.env_id, seeds)
-        record.update(self._stages(model, seeds))
+        record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
         record["curve"] = curve.points
         record.update(self._diagnose(model, seed))
         record.update(self.baselines(seed))
@@ -203,25 +201,12 @@ class LearnRun:
         d = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
         return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing)
 
-    def _stages(self, model: Any, seeds: list[int]) -> dict[str, list[float]]:
-        """The trained model with one stage back at its initial rule, on the held-out episodes: which stage's learning
-        the trained return owes to (:func:`.diagnose.stage_reset`); nothing without a pre-assign actor."""
-        from sb3_taskalloc.experiments.diagnose import stage_reset
-
-        if model.policy.actor is None:
-            return {}
-        out = {}
-        for column, reset in (("actor_only", "selector"), ("pointer_only", "actor")):
-            with stage_reset(model.policy, reset):  # type: ignore[arg-type]
-                out[column] = episode_returns(model, self.env_id, seeds)
-        return out
-
     def _complete(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
         """A finished seed, with what later versions measure added from its saved model (and saved):
 
         - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
           critic's own reward unless it learned the commitment reward: then the figures are measured again;
-        - a record without ``actor_only`` gets the returns of :meth:`_stages`.
+        - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`.
 
         Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
         """
@@ -236,12 +221,13 @@ class LearnRun:
                 warnings.warn(f"{path}: critic figures measured against the env reward, {zip_path.name} is gone", stacklevel=2)
             return record
         from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc.experiments.diagnose import stage_returns
 
         model = TwoStageSAC.load(zip_path, device="cpu")
         if stale:
             record = {**record, **self._diagnose(model, record["seed"])}
         if "actor_only" not in record:
-            record = {**record, **self._stages(model, record["eval_seeds"])}
+            record = {**record, **stage_returns(model, self.env_id, record["eval_seeds"])}
         atomic_write_text(path, json.dumps(record) + "\n")
         return record
 

@@ -26,6 +26,7 @@ import os
 import time
 import zipfile
 from collections.abc import Callable
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -57,12 +58,11 @@ def env_logs(log: Path, n_envs: int) -> list[Path]:
     return [log.with_name(f"{stem}.env{k}.monitor.csv") for k in range(n_envs)]
 
 
-def logged_returns(log: Path) -> np.ndarray:
-    """Training episode returns in the order the episodes ended, from ``log`` or, for a model trained on several envs,
-    from its per-env logs (:func:`env_logs`) merged by end time; empty when there is none."""
-    paths = [log] if log.exists() else sorted(log.parent.glob(log.name.removesuffix(".monitor.csv") + ".env*.monitor.csv"))
+def logged_returns(logs: list[Path]) -> np.ndarray:
+    """Training episode returns in the order the episodes ended, merged by end time from the Monitor logs of the envs
+    that trained one model (:func:`env_logs`); empty when there are none."""
     ends = []
-    for path in paths:
+    for path in (log for log in logs if log.exists()):
         for row in path.read_text().strip().splitlines()[2:]:  # Monitor: a JSON line, then the header r,l,t
             r, _, t = row.split(",")[:3]
             ends.append((float(t), float(r)))
@@ -129,17 +129,14 @@ class TableRun:
         self.folder = Path(out) / env
         self.progress = progress
         self.cells_path = self.folder / "cells.csv"
-        self._zoo: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------ records
 
     def _train_settings(self, name: str, row: str = "train") -> list[Any]:
         """Everything that changes the model of ``name`` trained on the env of ``row``."""
         method, budget = METHODS[name], self.budget
-        train_id = row_env(self.env, "train")
-        assert train_id is not None
         learner = budget.sac if method.kind == "sac" else budget.ppo if method.kind == "ppo" else None
-        zoo = self._zoo.setdefault(train_id, zoo_hyperparameters(train_id)) if method.kind == "sac" else None
+        zoo = self._zoo if method.kind == "sac" else None
         steps = budget.steps(self.env, budget.train_episodes)
         return [method, env_settings(row_env(self.env, row)), steps, learner, budget.max_episode_steps, zoo]
 
@@ -208,11 +205,21 @@ class TableRun:
         ``n_envs`` > 1 each env logs to its own file beside it (:func:`env_logs`)."""
         return self.folder / "logs" / f"{self._model_path(method, seed, row).stem}.monitor.csv"
 
-    def _n_envs(self, method: Method) -> int:
-        """Envs a TwoStageSAC column collects from at once (the zoo config's ``n_envs``, as rl-zoo3 reads it)."""
+    @cached_property
+    def _zoo(self) -> dict[str, Any]:
+        """The training env's block of ``zoo_configs/two_stage_sac.yml``, read once per run."""
         train_id = row_env(self.env, "train")
         assert train_id is not None
-        return int(zoo_hyperparameters(train_id).get("n_envs", 1)) if method.kind == "sac" else 1
+        return zoo_hyperparameters(train_id)
+
+    def _sac_kwargs(self) -> dict[str, Any]:
+        """TwoStageSAC keywords of every column and row: the training env's zoo block (on the presets too) under the
+        budget's own."""
+        return {**self._zoo, **self.budget.sac}
+
+    def _n_envs(self, method: Method) -> int:
+        """Envs a column collects from at once: ``n_envs`` of :meth:`_sac_kwargs` (rl-zoo3's key) for TwoStageSAC."""
+        return int(self._sac_kwargs().get("n_envs", 1)) if method.kind == "sac" else 1
 
     def _train_env(self, env_id: str, log: Path, n_envs: int) -> Any:
         """A Monitor-wrapped env of ``env_id`` logging to ``log``, or with ``n_envs`` > 1 a DummyVecEnv of them."""
@@ -244,9 +251,7 @@ class TableRun:
 
             vec = DummyVecEnv([lambda: Monitor(self.budget.make(env_id), filename=str(log))])
             return MaskablePPO("MultiInputPolicy", vec, seed=seed, **self.budget.ppo)
-        train_id = row_env(self.env, "train")
-        assert train_id is not None
-        kwargs = {**zoo_hyperparameters(train_id), **self.budget.sac}  # the training env's settings on the presets too
+        kwargs = self._sac_kwargs()
         env = self._train_env(env_id, log, int(kwargs.pop("n_envs", 1)))
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
@@ -449,7 +454,7 @@ class TableRun:
         for name in self.methods:
             runs = []
             for seed in range(self.seeds):
-                returns = logged_returns(self._log_path(name, seed))
+                returns = logged_returns(env_logs(self._log_path(name, seed), self._n_envs(METHODS[name])))
                 if len(returns):
                     runs.append(returns)
             if runs and min(len(r) for r in runs) > 0:
