@@ -21,11 +21,12 @@ import torch as th
 from stable_baselines3.common.logger import KVWriter, Logger
 
 import envs  # noqa: F401  (registers the TaskAlloc ids)
-from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc import PAPER_KWARGS, TwoStageSAC
 
 FINGERPRINTS = Path(__file__).parent / "data" / "fingerprints.json"
 
-#: name -> (env id, policy kwargs, algorithm kwargs, env steps). Every env at its defaults, every ablation and option.
+#: name -> (env id, policy kwargs, algorithm kwargs, env steps). Every env at its defaults, every ablation and option,
+#: and the paper's configuration.
 CASES: dict[str, tuple[str, dict[str, Any], dict[str, Any], int]] = {
     "Almighty": ("TaskAlloc/Almighty-v0", {}, {}, 24),
     "EPT": ("TaskAlloc/EPT-v0", {}, {}, 24),
@@ -37,6 +38,12 @@ CASES: dict[str, tuple[str, dict[str, Any], dict[str, Any], int]] = {
     "EPT-mlp-encoder": ("TaskAlloc/EPT-v0", {"encoder": "mlp"}, {}, 16),
     "EPT-global-mixer": ("TaskAlloc/EPT-v0", {"mixer": "global"}, {}, 16),
     "EPT-paper-init": ("TaskAlloc/EPT-v0", {"heuristic_init": False, "pair_features": False, "hyper_bias": False}, {}, 16),
+    "RBF-paper": (
+        "TaskAlloc/RBF-v0",
+        PAPER_KWARGS["policy_kwargs"],
+        {k: v for k, v in PAPER_KWARGS.items() if k != "policy_kwargs"},
+        16,
+    ),
     "EPT-warmup-fixed-alpha": (
         "TaskAlloc/EPT-v0",
         {},

@@ -244,7 +244,9 @@ def test_diagnose_reads_the_critic_against_the_reward_it_learns():
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.diagnose import diagnose
 
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/RBF-v0", reward_timing="completion", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16}
+    )
     paid = diagnose(model, "TaskAlloc/RBF-v0", episodes=1)
     model.reward_timing = "commitment"
     credited = diagnose(model, "TaskAlloc/RBF-v0", episodes=1)
@@ -332,7 +334,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
 
     from sb3_taskalloc.experiments import learn
 
-    kwargs = {"learning_starts": 5, "batch_size": 8, "policy_kwargs": {"hidden_dim": 16}}
+    kwargs = {"n_envs": 1, "learning_starts": 5, "batch_size": 8, "policy_kwargs": {"hidden_dim": 16}}  # n_envs: the zoo's 8
     run = learn.LearnRun(
         "EPT",
         seeds=2,
@@ -387,7 +389,7 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments import learn
 
-    kwargs = {"learning_starts": 2, "batch_size": 4, "learning_rate": 0.05, "policy_kwargs": {"hidden_dim": 8}}
+    kwargs = {"n_envs": 1, "learning_starts": 2, "batch_size": 4, "learning_rate": 0.05, "policy_kwargs": {"hidden_dim": 8}}
     run = learn.LearnRun("EPT", seeds=1, steps=12, eval_episodes=2, eval_every=4, algo_kwargs=kwargs, planners=(),
                          out=tmp_path, validation_episodes=2)  # fmt: skip
     plain = learn.LearnRun("EPT", seeds=1, steps=12, eval_episodes=2, eval_every=4, algo_kwargs=kwargs, planners=(),

@@ -132,11 +132,12 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
     from sb3_taskalloc.experiments import demo
 
     demo.main(
-        ["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--eval-episodes", "1", "--eval-every", "20", "--threads", "1",
-         "--out", str(tmp_path)]
+        ["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--n-envs", "2", "--eval-episodes", "1", "--eval-every", "20",
+         "--threads", "1", "--out", str(tmp_path)]
     )  # fmt: skip
     record = json.loads((tmp_path / "results.json").read_text())
-    assert [step for step, _ in record["eval_curve"]] == [20, 40]  # EvalCallback's deterministic evaluations
+    assert [step for step, _ in record["eval_curve"]] == [20, 40]  # EvalCallback's deterministic evaluations, in env steps
+    assert record["n_envs"] == 2 and len(list(tmp_path.glob("train/*.monitor.csv"))) == 2
     assert (tmp_path / "evaluations.npz").stat().st_size > 0
     assert record["env"] == "TaskAlloc/EPT-v0" and record["steps"] == 40 and record["device"] in ("cpu", "cuda")
     assert set(record["eval"]) == {"TwoStageSAC", "Greedy", "Random"}

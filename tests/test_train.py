@@ -28,9 +28,10 @@ def model() -> TwoStageSAC:
         learning_starts=32,
         batch_size=16,
         seed=0,
-        prior_coef=0.0,  # the paper's losses; the prior term is checked on its own
+        prior_coef=0.0,  # the paper's losses and critic; the prior term, the mean bonus and team_value have their own tests
         select_prior_coef=0.0,
-        policy_kwargs={"hidden_dim": 16},
+        entropy_bonus="sum",
+        policy_kwargs={"hidden_dim": 16, "team_value": False, "logit_scale": 1.0, "select_logit_scale": 1.0},
         device="cpu",  # the hand-built batches below are CPU tensors
     )
     m.learn(40)

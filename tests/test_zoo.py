@@ -45,9 +45,10 @@ def test_configs_have_a_valid_block_per_env(name):
     for env_id in envs.ENV_SPECS:
         block = dict(config[env_id])
         assert block.pop("policy") == "TAMPolicy" and block.pop("n_timesteps") > 0
+        assert block.pop("n_envs", 1) >= 1  # rl-zoo3's key: the VecEnv, not a TwoStageSAC keyword
         assert set(block) <= algo_args, set(block) - algo_args
         assert set(block["policy_kwargs"]) <= policy_args
-    block = {k: v for k, v in config["TaskAlloc/Almighty-v0"].items() if k not in ("policy", "n_timesteps")}
+    block = {k: v for k, v in config["TaskAlloc/Almighty-v0"].items() if k not in ("policy", "n_timesteps", "n_envs")}
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **block)
     assert model.learning_rate == pytest.approx(1e-3) and model.policy.hidden_dim == 64
 

@@ -13,9 +13,10 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.demo", description=__doc__)
     parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="environment id")
-    parser.add_argument("--steps", type=int, default=1200, help="training env steps")
+    parser.add_argument("--steps", type=int, default=4000, help="training env steps (all envs together)")
+    parser.add_argument("--n-envs", type=int, default=8, help="envs collected at once (one batched decision for all)")
     parser.add_argument("--eval-episodes", type=int, default=3)
-    parser.add_argument("--eval-every", type=int, default=300, help="env steps between deterministic evaluations")
+    parser.add_argument("--eval-every", type=int, default=1000, help="env steps between deterministic evaluations")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
     parser.add_argument("--out", default="demo_out")
@@ -24,10 +25,9 @@ def main(argv: list[str] | None = None) -> None:
     import gymnasium as gym
     import numpy as np
     import torch as th
-    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
-    from stable_baselines3.common.monitor import Monitor
 
     import envs  # registers the TaskAlloc ids
     from envs.rendering import save_gif
@@ -40,22 +40,37 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     if args.env not in envs.ENV_SPECS:
         raise SystemExit(f"unknown env {args.env!r}; choose from {sorted(envs.ENV_SPECS)}")
+    if args.n_envs < 1 or args.steps < args.n_envs:
+        raise SystemExit(f"--n-envs must be >= 1 and --steps >= --n-envs, got {args.n_envs} and {args.steps}")
 
-    train_env = Monitor(gym.make(args.env), str(out / "train"))
-    model = TwoStageSAC("TAMPolicy", train_env, learning_starts=min(300, args.steps // 3), train_freq=2, seed=args.seed)
-    print(f"training TwoStageSAC on {args.env} for {args.steps} steps (one gradient step every 2 env steps)...")
+    class EpisodeEnds(BaseCallback):
+        """(env steps collected so far, return) of each training episode as it ends, in every env (their Monitors)."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.ends: list[tuple[int, float]] = []
+
+        def _on_step(self) -> bool:
+            self.ends += [(self.num_timesteps, info["episode"]["r"]) for info in self.locals["infos"] if "episode" in info]
+            return True
+
+    train_env = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, monitor_dir=str(out / "train"))
+    model = TwoStageSAC("TAMPolicy", train_env, learning_starts=min(500, args.steps // 3), seed=args.seed)
+    print(f"training TwoStageSAC on {args.env} for {args.steps} steps on {args.n_envs} envs (one gradient step per batch)...")
     t0 = time.time()
     # Deterministic return on held-out episodes (reset seeds disjoint from training) while training: the sampled
-    # training episodes explore, so they score below what the deployed policy does.
+    # training episodes explore, so they score below what the deployed policy does. EvalCallback counts calls, each
+    # of which collects n_envs env steps.
+    episodes = EpisodeEnds()
     evaluation = EvalCallback(
         make_vec_env(args.env, n_envs=1, seed=20_000 + args.seed),
-        eval_freq=args.eval_every,
+        eval_freq=max(1, args.eval_every // args.n_envs),
         n_eval_episodes=args.eval_episodes,
         log_path=str(out),
         deterministic=True,
         verbose=0,
     )
-    model.learn(args.steps, callback=evaluation, progress_bar=True)
+    model.learn(args.steps, callback=[episodes, evaluation], progress_bar=True)
     train_s = time.time() - t0
     model.save(out / "two_stage_sac")
 
@@ -69,8 +84,8 @@ def main(argv: list[str] | None = None) -> None:
     for name, (mean, std) in results.items():
         print(f"  {name:12s} {mean:9.2f} ± {std:.2f}")
 
-    returns = np.asarray(train_env.get_episode_rewards(), dtype=float)
-    ends = np.cumsum(train_env.get_episode_lengths())
+    ends = np.array([t for t, _ in episodes.ends], dtype=float)
+    returns = np.array([r for _, r in episodes.ends], dtype=float)
     png = plot_learning_curve(
         {"TwoStageSAC, sampled (training episodes)": (ends, returns)},
         out / "learning_curve.png",
@@ -94,6 +109,7 @@ def main(argv: list[str] | None = None) -> None:
             {
                 "env": args.env,
                 "steps": args.steps,
+                "n_envs": args.n_envs,
                 "device": str(model.device),
                 "train_seconds": train_s,
                 "eval": results,

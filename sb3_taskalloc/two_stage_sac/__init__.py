@@ -82,6 +82,6 @@ published code):
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
-from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
+from sb3_taskalloc.two_stage_sac.two_stage_sac import PAPER_KWARGS, TwoStageSAC
 
-__all__ = ["TAMPolicy", "TwoStageSAC"]
+__all__ = ["PAPER_KWARGS", "TAMPolicy", "TwoStageSAC"]

@@ -34,6 +34,9 @@ from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, deco
 #: greedy allocator's rule), and the gain of the last layer of the task embeddings whose dot products add to both scores.
 HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embedding_gain": 0.0}
 
+#: Default (κ, κ_s) of a rule-initialised policy (implementation detail 10): sampled decisions stay near the rule's argmax.
+RULE_LOGIT_SCALES = (100.0, 10.0)
+
 #: Keys of the observation that TAMPolicy reads (the ``TaskAlloc`` observation layout).
 OBS_KEYS = (
     "entity_features",
@@ -74,8 +77,10 @@ class TAMPolicy(BasePolicy):
     :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (not in the paper, where κ = 1): the
         inverse temperature of the pre-assignment. Pair costs of one entity differ by a few percent between tasks, so
         with κ = 1 the cost-greedy rule samples nearly uniform tasks; a larger κ keeps the sampled behaviour near the
-        deployed argmax, and since gradient steps move the scores, learning changes the logits κ times faster
-    :param select_logit_scale: κ_s, the same for the pointer actor's logits (1: the paper's)
+        deployed argmax, and since gradient steps move the scores, learning changes the logits κ times faster.
+        ``None``: 100 with ``heuristic_init`` (implementation detail 10), else 1 (a random start is no rule to stay near)
+    :param select_logit_scale: κ_s, the same for the pointer actor's logits; ``None``: 10 with ``heuristic_init``,
+        else 1 (the paper's)
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -111,9 +116,9 @@ class TAMPolicy(BasePolicy):
         mixer: Literal["amix", "global"] = "amix",
         monotonic_mixer: bool = False,
         hyper_bias: bool = True,
-        team_value: bool = False,
-        logit_scale: float = 1.0,
-        select_logit_scale: float = 1.0,
+        team_value: bool = True,
+        logit_scale: float | None = None,
+        select_logit_scale: float | None = None,
         n_critics: int = 2,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
@@ -156,6 +161,10 @@ class TAMPolicy(BasePolicy):
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
         self.team_value = team_value
+        if logit_scale is None:
+            logit_scale = RULE_LOGIT_SCALES[0] if heuristic_init else 1.0
+        if select_logit_scale is None:
+            select_logit_scale = RULE_LOGIT_SCALES[1] if heuristic_init else 1.0
         for name, scale in (("logit_scale", logit_scale), ("select_logit_scale", select_logit_scale)):
             if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
