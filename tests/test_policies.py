@@ -397,13 +397,14 @@ def test_pointer_scores_equal_their_definition(state_value):
 
 def test_logit_scale_multiplies_the_pre_assign_logits():
     """``logit_scale`` κ: the pre-assign logits are κ times the scores, the argmax is unchanged, sampling is sharper;
-    a non-positive κ is refused. The default is κ = 100 (κ_s = 10) for the rule-initialised actors, 1 for the paper's
-    random start."""
+    a non-positive κ is refused. The default is κ = 100 (κ_s = 10) for the rule-initialised actors, 1 for a random start
+    (the paper's, and the W/o TAM actor, which has no rule)."""
     env = gym.make("TaskAlloc/RBF-v0")
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 4)))
-    ruled, paper = make_policy(env), make_policy(env, heuristic_init=False)
+    ruled, paper, flat = make_policy(env), make_policy(env, heuristic_init=False), make_policy(env, encoder="mlp")
     assert (ruled.logit_scale, ruled.select_logit_scale) == (100.0, 10.0)
     assert (paper.logit_scale, paper.select_logit_scale) == (1.0, 1.0)
+    assert (flat.logit_scale, flat.select_logit_scale) == (1.0, 10.0)  # its pointer starts at the unit-cost rule
     th.manual_seed(0)
     plain = make_policy(env, logit_scale=1.0)
     th.manual_seed(0)

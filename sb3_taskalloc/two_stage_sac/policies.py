@@ -78,7 +78,8 @@ class TAMPolicy(BasePolicy):
         inverse temperature of the pre-assignment. Pair costs of one entity differ by a few percent between tasks, so
         with κ = 1 the cost-greedy rule samples nearly uniform tasks; a larger κ keeps the sampled behaviour near the
         deployed argmax, and since gradient steps move the scores, learning changes the logits κ times faster.
-        ``None``: 100 with ``heuristic_init`` (implementation detail 10), else 1 (a random start is no rule to stay near)
+        ``None``: 100 where the actor starts at the rule (``heuristic_init`` with the TAM pair read-out, implementation
+        detail 10), else 1 (a random start is no rule to stay near)
     :param select_logit_scale: κ_s, the same for the pointer actor's logits; ``None``: 10 with ``heuristic_init``,
         else 1 (the paper's)
     :param n_critics: number of critics (clipped double-Q)
@@ -161,8 +162,9 @@ class TAMPolicy(BasePolicy):
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
         self.team_value = team_value
-        if logit_scale is None:
-            logit_scale = RULE_LOGIT_SCALES[0] if heuristic_init else 1.0
+        if logit_scale is None:  # only a pre-assign actor with the pair read-out starts at a rule (_init_heuristic)
+            ruled = heuristic_init and preassign and encoder == "tam" and pair_features
+            logit_scale = RULE_LOGIT_SCALES[0] if ruled else 1.0
         if select_logit_scale is None:
             select_logit_scale = RULE_LOGIT_SCALES[1] if heuristic_init else 1.0
         for name, scale in (("logit_scale", logit_scale), ("select_logit_scale", select_logit_scale)):
