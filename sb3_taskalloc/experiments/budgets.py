@@ -52,9 +52,7 @@ METHODS: dict[str, Method] = {
     "W/o Pre (sequence)": Method("sac", {"preassign": False, "task_order": "sequential"}),
     "W/o Pre (random)": Method("sac", {"preassign": False, "task_order": "random"}),
     "W/o AMIX": Method("sac", {"mixer": "global"}),
-    # The flat actor starts at random, not at a rule: κ = 1 over the zoo configs' κ = 100 for the rule (TAMPolicy's own
-    # default for it).
-    "W/o TAM": Method("sac", {"encoder": "mlp", "logit_scale": 1.0}),
+    "W/o TAM": Method("sac", {"encoder": "mlp"}),
     "Greedy": Method("static", target="GreedyAllocator"),
     "MILP": Method("static", target="MILPAllocator"),
     "MaskablePPO": Method("ppo"),
