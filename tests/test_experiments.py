@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import multiprocessing as mp
 import os
@@ -238,6 +239,55 @@ def test_diagnose_measures_calibration_and_drift(tmp_path):
     assert sum(shares) == pytest.approx(1.0) and fresh.tasks_kept > 0 and "kept / short of demand" in path.read_text()
 
 
+def test_calibration_figures_separate_the_critic_from_the_noise():
+    """Returns G = μ + ε with Var μ = 1 and Var ε = 1 over K = 4 branches: the ceiling of corr(Q, G) is sqrt(1/2); a
+    critic Q = μ correlates with the branch means Ḡ by sqrt(1 / (1 + 1/4)) and has scale Q/Ḡ = 1 / (1 + 1/4)."""
+    from sb3_taskalloc.experiments.diagnose import calibration_figures
+
+    rng = np.random.default_rng(0)
+    mu = rng.normal(size=20_000)
+    returns = mu[:, None] + rng.normal(size=(20_000, 4))
+    free = 10 + 3 * mu + rng.normal(size=20_000)
+    got = calibration_figures(mu, returns, free)
+    assert got["branch_states"] == 20_000
+    assert got["return_ceiling"] == pytest.approx(np.sqrt(0.5), abs=0.01)
+    assert got["q_corr_expected"] == pytest.approx(np.sqrt(1 / 1.25), abs=0.01)
+    assert got["q_scale_expected"] == pytest.approx(1 / 1.25, abs=0.02)
+    assert got["free_corr_q"] == pytest.approx(3 / np.sqrt(10), abs=0.01)
+    noiseless = calibration_figures(mu, np.repeat(mu[:, None], 3, 1), free)
+    assert noiseless["return_ceiling"] == pytest.approx(1.0) and noiseless["q_corr_expected"] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="K >= 2"):
+        calibration_figures(mu, returns[:, :1], free)
+
+
+def test_branch_calibration_branches_the_env_randomness():
+    """Copies of a state draw their own arrivals (seeded per copy, so they are reproducible), and the calibration
+    branches every ``stride``-th state of each episode."""
+    import torch as th
+
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.diagnose import _branch_returns, branch_calibration
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/RBF-v0")
+    obs, _ = env.reset(seed=3)
+    action = model.predict(obs, deterministic=True)[0]
+    untouched = copy.deepcopy(env)
+    runs = []
+    for _ in range(2):
+        th.manual_seed(0)
+        with th.no_grad():
+            runs.append(_branch_returns(model, env, action, branches=3, horizon=30, key=7))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert len(set(runs[0].round(9))) > 1  # the copies' futures differ
+    stepped, reference = env.step(action)[0], untouched.step(action)[0]  # the snapshot itself was neither stepped nor reseeded
+    assert all(np.array_equal(stepped[k], reference[k]) for k in stepped)
+    figures = branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
+    assert figures["branch_states"] == 2 and 0 <= figures["return_ceiling"] <= 1
+    with pytest.raises(ValueError, match="branches"):
+        branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=1)
+
+
 def test_diagnose_reads_the_critic_against_the_reward_it_learns():
     """A critic trained on the commitment reward is compared with returns of that reward, not of the env reward: on the
     same sampled episodes (diagnose seeds its sampling) only the critic's returns change."""
@@ -247,9 +297,9 @@ def test_diagnose_reads_the_critic_against_the_reward_it_learns():
     model = TwoStageSAC(
         "TAMPolicy", "TaskAlloc/RBF-v0", reward_timing="completion", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16}
     )
-    paid = diagnose(model, "TaskAlloc/RBF-v0", episodes=1)
+    paid = diagnose(model, "TaskAlloc/RBF-v0", episodes=1, branches=0)
     model.reward_timing = "commitment"
-    credited = diagnose(model, "TaskAlloc/RBF-v0", episodes=1)
+    credited = diagnose(model, "TaskAlloc/RBF-v0", episodes=1, branches=0)
     assert paid.reward_timing == "completion" and credited.reward_timing == "commitment"
     assert credited.sampled_return == paid.sampled_return  # the same episodes, scored by the env reward
     assert credited.mc_return_mean != pytest.approx(paid.mc_return_mean, rel=1e-3)
@@ -275,6 +325,11 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path):
     assert again["q_corr"] == pytest.approx(record["q_corr"]) and json.loads(path.read_text())["critic_reward"] == "commitment"
     path.write_text(json.dumps({k: v for k, v in record.items() if k not in ("actor_only", "pointer_only")}))
     assert run.run_seed(0)["pointer_only"] == record["pointer_only"] and "actor_only" in json.loads(path.read_text())
+    # Without the figures against the expected return: measured by the same seeded diagnosis, the others unchanged.
+    path.write_text(json.dumps({k: v for k, v in record.items() if k not in learn.CRITIC_BRANCHED} | {"q_corr": 99.0}))
+    branched = run.run_seed(0)
+    assert branched["q_corr_expected"] == pytest.approx(record["q_corr_expected"], nan_ok=True)
+    assert branched["q_corr"] == pytest.approx(record["q_corr"])
     path.write_text(json.dumps(stale))
     path.with_suffix(".zip").unlink()
     with pytest.warns(UserWarning, match="is gone"):
@@ -288,8 +343,12 @@ def test_diagnose_cli_trains_on_n_envs(tmp_path):
     from sb3_taskalloc.experiments.__main__ import main
 
     kwargs = "{n_envs: 2, learning_starts: 10, batch_size: 8, policy_kwargs: {hidden_dim: 8}}"
-    main(["diagnose", "--env", "EPT", "--steps", "40", "--episodes", "1", "--out", str(tmp_path), "--algo-kwargs", kwargs])
-    assert json.loads((tmp_path / "diagnose_EPT-v0.json").read_text())["episodes"] == 1
+    args = ["diagnose", "--env", "EPT", "--steps", "40", "--episodes", "1", "--out", str(tmp_path), "--algo-kwargs", kwargs]
+    main([*args, "--branches", "2", "--branch-stride", "25"])
+    figures = json.loads((tmp_path / "diagnose_EPT-v0.json").read_text())
+    assert figures["episodes"] == 1 and figures["branch_states"] == 4  # EPT's 100 steps, every 25th branched
+    with pytest.raises(SystemExit):
+        main([*args, "--branches", "1"])  # no spread to measure with one rollout
 
 
 def test_task_outcomes_classify_each_open_task():
@@ -349,6 +408,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     text = run.run(progress=False).read_text()
     header = "| seed | untrained | trained | only actor learned | only pointer learned | Greedy | MILP | GeneticAlgorithm |"
     assert header in text and "trained > Greedy:" in text
+    assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | training s |" in text
+    assert "a perfect critic would reach corr(Q, G)" in text
     data = json.loads((tmp_path / "EPT.json").read_text())
     assert [r["seed"] for r in data["seeds"]] == [0, 1]
     for record in data["seeds"]:

@@ -36,6 +36,8 @@ def main(argv: list[str] | None = None) -> None:
     diag.add_argument("--steps", type=int, default=0, help="env steps to train a new model first (0: untrained)")
     diag.add_argument("--episodes", type=int, default=3, help="sampled and deterministic evaluation episodes each")
     diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
+    diag.add_argument("--branches", type=int, default=8, help="rollouts per branched state for corr(Q, Ḡ) (0: skip)")
+    diag.add_argument("--branch-stride", type=int, default=10, help="branch every this many steps of an episode")
     diag.add_argument("--out", default="results/diagnose")
     diag.add_argument(
         "--algo-kwargs", type=yaml_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"'
@@ -115,6 +117,8 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
 
     if args.steps < 0 or args.episodes < 1:
         parser.error("--steps must be >= 0 and --episodes >= 1")
+    if args.branches == 1 or args.branches < 0 or args.branch_stride < 1:
+        parser.error("--branches must be 0 (skip) or >= 2, and --branch-stride >= 1")
     env_id = f"TaskAlloc/{args.env}-v0"
     if args.model:
         model = TwoStageSAC.load(args.model, device="cpu")
@@ -123,7 +127,7 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
         model = TwoStageSAC("TAMPolicy", env, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)
-    path = write(diagnose(model, env_id, args.episodes), args.out)
+    path = write(diagnose(model, env_id, args.episodes, branches=args.branches, branch_stride=args.branch_stride), args.out)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}")
 

@@ -12,6 +12,13 @@
   learns: the env reward, or ``info["commitment_reward"]`` for a model trained with ``reward_timing="commitment"``
   (the same profit, credited when a team is committed instead of when it arrives: on MT about 24 steps earlier, a
   factor 0.9^24 ≈ 0.08 at γ = 0.9, so the env reward would misjudge such a critic);
+- the critic against the expected return (:func:`branch_calibration`): from every ``branch_stride``-th state of
+  further sampled episodes, ``branches`` rollouts that share the executed step and differ in the env's randomness (the
+  arrivals, the demand noise) and in the sampled decisions after it. Their mean Ḡ estimates E[G | s, c], the quantity
+  Q(s, c) estimates; corr(Q, Ḡ) is the critic's calibration without the noise of one rollout, and the return ceiling
+  sqrt(Var E[G|s,c] / Var G) is the correlation with one-rollout returns that a perfect critic would reach (the noise
+  bound of corr(Q, G)). The correlations of Q and of Ḡ with the number of free entities show a critic that values
+  free entities the returns do not;
 - the entropy bonus of the stage-1 target against the reward: mean γ·α·H(s') and mean |r| per transition;
 - the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
   changed;
@@ -34,7 +41,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -73,6 +80,12 @@ class Diagnosis:
     tasks_short: float
     tasks_unprofitable: float
     tasks_no_candidates: float
+    branch_states: int = 0
+    q_corr_expected: float = math.nan
+    q_scale_expected: float = math.nan
+    return_ceiling: float = math.nan
+    free_corr_q: float = math.nan
+    free_corr_expected: float = math.nan
 
     def table(self) -> str:
         """A Markdown table of the figures."""
@@ -85,6 +98,11 @@ class Diagnosis:
             ("critic Q, mean", f"{self.q_mean:.3f}"),
             ("Monte-Carlo return G, mean", f"{self.mc_return_mean:.3f}"),
             ("corr(Q, G), scale Q/G", f"{self.q_corr:.3f}, {self.q_scale:.3f}"),
+            (
+                f"expected return Ḡ ({self.branch_states} states): corr(Q, Ḡ), scale Q/Ḡ; ceiling of corr(Q, G)",
+                f"{self.q_corr_expected:.3f}, {self.q_scale_expected:.3f}; {self.return_ceiling:.3f}",
+            ),
+            ("corr with the number of free entities: Q / Ḡ", f"{self.free_corr_q:.3f} / {self.free_corr_expected:.3f}"),
             ("entropy-inclusive return G^H, mean; corr(Q, G^H)", f"{self.soft_return_mean:.3f}, {self.q_corr_soft:.3f}"),
             ("γ·α·H(s') per transition / mean |r|", f"{self.entropy_bonus_mean:.3f} / {self.abs_reward_mean:.3f}"),
             ("KL(π ‖ π₀) per free entity", f"{self.kl_per_entity:.2e}"),
@@ -193,27 +211,140 @@ def _stack(observations: list[dict[str, np.ndarray]], device: th.device) -> dict
     return {k: th.as_tensor(np.stack([o[k] for o in observations]), device=device) for k in observations[0]}
 
 
+def _long_env(env_id: str, gamma: float) -> tuple[gym.Env, int | None]:
+    """``env_id`` with its time limit extended until γ^k < 1 % (the critic's returns do not stop at the limit), and
+    the limit proper (None without one)."""
+    limit = gym.spec(env_id).max_episode_steps
+    if limit is None:
+        return gym.make(env_id), None
+    return gym.make(env_id, max_episode_steps=limit + math.ceil(math.log(0.01) / math.log(gamma))), limit
+
+
+def _learned_reward(model: Any, reward: SupportsFloat, info: dict[str, Any]) -> float:
+    """The reward the stage-1 critic learns: the env reward, or the commitment reward (see the module docstring)."""
+    if getattr(model, "reward_timing", "completion") == "commitment":
+        return float(info["commitment_reward"])
+    return float(reward)
+
+
+def _branch_returns(model: Any, snapshot: gym.Env, action: np.ndarray, branches: int, horizon: int, key: int) -> np.ndarray:
+    """Discounted returns of ``branches`` copies of ``snapshot`` that take ``action`` and then sample the model's
+    decisions for ``horizon`` − 1 more steps (or until they end); copy k draws the env's randomness from seed
+    ``[key, k]``. The copies decide in one batched forward pass per step."""
+    policy, gamma = model.policy, float(model.gamma)
+    copies, obs = [], []
+    returns, alive = np.zeros(branches), np.ones(branches, dtype=bool)
+    for k in range(branches):
+        env = copy.deepcopy(snapshot)
+        env.unwrapped.np_random = np.random.default_rng([key, k])
+        o, reward, terminated, truncated, info = env.step(action)
+        returns[k] = _learned_reward(model, reward, info)
+        alive[k] = not (terminated or truncated)
+        copies.append(env)
+        obs.append(o)
+    for step in range(1, horizon):
+        live = np.flatnonzero(alive)
+        if len(live) == 0:
+            break
+        batch = {name: np.stack([obs[k][name] for k in live]) for name in obs[0]}
+        decision = policy.decide(policy.parse(policy.obs_to_tensor(batch)[0]), deterministic=False)
+        for row, k in enumerate(live.tolist()):
+            obs[k], reward, terminated, truncated, info = copies[k].step(decision.env_action[row].cpu().numpy())
+            returns[k] += gamma**step * _learned_reward(model, reward, info)
+            alive[k] = not (terminated or truncated)
+    return returns
+
+
 @th.no_grad()
-def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> Diagnosis:
+def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int = 8, stride: int = 10) -> dict[str, Any]:
+    """The critic against the expected return (see the module docstring): the figures ``branch_states``,
+    ``q_corr_expected``, ``q_scale_expected``, ``return_ceiling``, ``free_corr_q`` and ``free_corr_expected`` of
+    :class:`Diagnosis`, measured on sampled episodes with reset seeds ``seeds`` (NaN without a pre-assign critic).
+
+    :param branches: rollouts per state (≥ 2: the ceiling needs their spread)
+    :param stride: every ``stride``-th state of an episode is branched
+    """
+    if branches < 2 or stride < 1:
+        raise ValueError(f"branches must be >= 2 and stride >= 1, got {branches} and {stride}")
+    policy, gamma = model.policy, float(model.gamma)
+    nan = float("nan")
+    out: dict[str, Any] = dict(branch_states=0, q_corr_expected=nan, q_scale_expected=nan, return_ceiling=nan)
+    out.update(free_corr_q=nan, free_corr_expected=nan)
+    if policy.actor is None or policy.critic is None:
+        return out
+    env, limit = _long_env(env_id, gamma)
+    horizon = math.ceil(math.log(0.01) / math.log(gamma))
+    q, returns, free = [], [], []
+    for s in seeds:
+        obs, _ = env.reset(seed=s)
+        for t in range(limit if limit is not None else 10**9):
+            view = policy.parse(policy.obs_to_tensor(obs)[0])
+            decision = policy.decide(view, deterministic=False)
+            action = decision.env_action[0].cpu().numpy()
+            if t % stride == 0 and bool(view.assignable.any()):
+                assign = decision.candidates.transpose(1, 2).float()
+                q.append(float(th.stack(policy.critic(view, assign), 0).min(0).values.item()))
+                returns.append(_branch_returns(model, env, action, branches, horizon, key=1_000 * s + t))
+                free.append(float(view.assignable.sum()))
+            obs, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                break
+    if len(q) < 2:
+        return {**out, "branch_states": len(q)}
+    return calibration_figures(np.asarray(q), np.stack(returns), np.asarray(free))
+
+
+def calibration_figures(q: np.ndarray, returns: np.ndarray, free: np.ndarray) -> dict[str, Any]:
+    """The figures of :func:`branch_calibration` from its measurements.
+
+    With G = μ(s, c) + ε, the branch means Ḡ estimate μ; E Var(ε) is the mean within-state variance s² of the branches,
+    and Var μ = Var Ḡ − s²/K (the means keep 1/K of the noise). A critic equal to μ correlates with one rollout's G by
+    sqrt(Var μ / (Var μ + E Var ε)): the ceiling.
+
+    :param q: (S,) Q(s, c) of the branched states
+    :param returns: (S, K) the branches' discounted returns
+    :param free: (S,) the number of free entities of each state
+    """
+    if returns.ndim != 2 or returns.shape[1] < 2 or len(q) != len(returns) or len(free) != len(returns):
+        raise ValueError(f"need (S,) values and (S, K >= 2) returns, got {q.shape}, {returns.shape}, {free.shape}")
+    mean = returns.mean(1)
+    noise = float(returns.var(1, ddof=1).mean())  # E Var(G | s, c)
+    signal = max(float(mean.var(ddof=1)) - noise / returns.shape[1], 0.0)  # Var E[G | s, c]
+    return dict(
+        branch_states=len(q),
+        q_corr_expected=_corr(q, mean),
+        q_scale_expected=float(q @ mean / max(mean @ mean, 1e-12)),
+        return_ceiling=math.sqrt(signal / (signal + noise)) if signal + noise > 0 else float("nan"),
+        free_corr_q=_corr(q, free),
+        free_corr_expected=_corr(mean, free),
+    )
+
+
+@th.no_grad()
+def diagnose(
+    model: Any, env_id: str, episodes: int = 3, seed: int = 10_000, branches: int = 8, branch_stride: int = 10
+) -> Diagnosis:
     """Measure the model on ``episodes`` sampled and ``episodes`` deterministic episodes of ``env_id`` (seeds from
     ``seed``, disjoint from training seeds by default; ``seed`` also seeds the sampled decisions).
 
     :param model: a :class:`~sb3_taskalloc.TwoStageSAC`
+    :param branches: rollouts per branched state of :func:`branch_calibration` (0: skip it)
+    :param branch_stride: every ``branch_stride``-th state of an episode is branched
     """
     policy, gamma = model.policy, float(model.gamma)
     alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())
     env = gym.make(env_id)
-    limit = env.spec.max_episode_steps if env.spec is not None else None
-    long_env = env
-    if limit is not None:  # run past the limit until γ^k < 1 %: the critic's returns do not stop there
-        long_env = gym.make(env_id, max_episode_steps=limit + math.ceil(math.log(0.01) / math.log(gamma)))
+    long_env, limit = _long_env(env_id, gamma)
     cuda = [model.device.index or 0] if model.device.type == "cuda" else []
     with th.random.fork_rng(devices=cuda):  # the sampled decisions are reproducible and leave the caller's stream alone
         th.manual_seed(seed)
         sampled = [_episode(model, long_env, seed + k, deterministic=False) for k in range(episodes)]
+        branched = (
+            branch_calibration(model, env_id, [seed + k for k in range(episodes)], branches, branch_stride) if branches else {}
+        )
     deterministic = [_episode(model, env, seed + k, deterministic=True) for k in range(episodes)]
     nan = float("nan")
-    figures: dict[str, float] = dict(q_mean=nan, mc_return_mean=nan, q_corr=nan, q_scale=nan, soft_return_mean=nan)
+    figures: dict[str, Any] = dict(q_mean=nan, mc_return_mean=nan, q_corr=nan, q_scale=nan, soft_return_mean=nan)
     figures.update(q_corr_soft=nan, entropy_bonus_mean=nan, kl_per_entity=nan, argmax_changed=nan)
     within = slice(0, limit)  # the states and rewards of the episodes proper
     timing = getattr(model, "reward_timing", "completion")
@@ -270,6 +401,7 @@ def diagnose(model: Any, env_id: str, episodes: int = 3, seed: int = 10_000) -> 
         pointer_only_return=stages.get("pointer_only", math.nan),
         abs_reward_mean=float(np.abs(rewards).mean()),
         **figures,
+        **branched,
     )
 
 

@@ -39,6 +39,19 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, training_env, zoo_hyperparameters
 
+#: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
+#: the expected return Ḡ, the correlation a perfect critic would reach against G, and with the number of free entities.
+CRITIC_COLUMNS = {
+    "q_corr": "corr(Q, G)",
+    "q_scale": "scale Q/G",
+    "q_corr_expected": "corr(Q, Ḡ)",
+    "q_scale_expected": "scale Q/Ḡ",
+    "return_ceiling": "ceiling",
+    "free_corr_q": "corr(Q, free)",
+    "free_corr_expected": "corr(Ḡ, free)",
+}
+CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
+
 #: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
 PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
 
@@ -199,21 +212,34 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import diagnose
 
         d = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
-        return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing)
+        return dict(
+            q_corr=d.q_corr,
+            q_scale=d.q_scale,
+            sampled=d.sampled_return,
+            critic_reward=d.reward_timing,
+            q_corr_expected=d.q_corr_expected,
+            q_scale_expected=d.q_scale_expected,
+            return_ceiling=d.return_ceiling,
+            free_corr_q=d.free_corr_q,
+            free_corr_expected=d.free_corr_expected,
+        )
 
     def _complete(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
         """A finished seed, with what later versions measure added from its saved model (and saved):
 
         - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
           critic's own reward unless it learned the commitment reward: then the figures are measured again;
-        - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`.
+        - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`;
+        - a record without ``q_corr_expected`` gets the critic's figures against the expected return (the same seeded
+          diagnosis, so its other critic figures come out as they were).
 
         Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
         """
         stale = "critic_reward" not in record and self.hyperparameters.get("reward_timing", "completion") == "commitment"
         if "critic_reward" not in record and not stale:
             record = {**record, "critic_reward": "completion"}
-        if not stale and "actor_only" in record:
+        branched = all(k in record for k in CRITIC_BRANCHED)
+        if not stale and "actor_only" in record and branched:
             return record
         zip_path = path.with_suffix(".zip")
         if not zip_path.exists():
@@ -224,7 +250,7 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
         model = TwoStageSAC.load(zip_path, device="cpu")
-        if stale:
+        if stale or not branched:
             record = {**record, **self._diagnose(model, record["seed"])}
         if "actor_only" not in record:
             record = {**record, **stage_returns(model, self.env_id, record["eval_seeds"])}
@@ -301,6 +327,8 @@ class LearnRun:
         shown = ["untrained", "trained", *stages, *selected, "Greedy", "MILP", *([best_planner] if best_planner else [])]
         names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned"}
         headers = [names.get(c, c) for c in shown]
+        critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if all(k in r for r in records for k in CRITIC_BRANCHED) else [])]
+        critic_headers = [CRITIC_COLUMNS[c] for c in critic]
         lines = [
             f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
             "episodes",
@@ -325,15 +353,16 @@ class LearnRun:
                 if stages
                 else []
             ),
-            "| seed | " + " | ".join(headers) + " | corr(Q, G) | scale Q/G | training s |",
-            "|---" * (len(shown) + 4) + "|",
+            "| seed | " + " | ".join(headers) + " | " + " | ".join(critic_headers) + " | training s |",
+            "|---" * (len(shown) + len(critic) + 2) + "|",
         ]
         for k, r in enumerate(records):
             cells = " | ".join(f"{means[c][k]:.1f}" for c in shown)
-            lines.append(f"| {r['seed']} | {cells} | {r['q_corr']:.2f} | {r['q_scale']:.2f} | {r['train_seconds']:.0f} |")
+            figures = " | ".join(f"{r[c]:.2f}" for c in critic)
+            lines.append(f"| {r['seed']} | {cells} | {figures} | {r['train_seconds']:.0f} |")
         summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
-        lines.append(f"| mean ± std | {summary} | {np.mean([r['q_corr'] for r in records]):.2f} | "
-                     f"{np.mean([r['q_scale'] for r in records]):.2f} | |")  # fmt: skip
+        critic_means = " | ".join(f"{np.mean([r[c] for r in records]):.2f}" for c in critic)
+        lines.append(f"| mean ± std | {summary} | {critic_means} | |")
         lines += ["", *self.targets(means, records)]
         return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
 
@@ -353,6 +382,16 @@ class LearnRun:
             f"- trained / per-step MILP (means): {trained.mean() / milp.mean():.3f}{milp_target}",
             f"- critic: corr(Q, G) {corr.mean():.2f} (target ≥ 0.7), scale Q/G {scale.mean():.2f} (target 0.7–1.3); G is the "
             f"discounted return of the reward the critic learns (credited at {timings})",
+            *(
+                [
+                    f"- critic against the expected return Ḡ (the mean of branched rollouts): corr(Q, Ḡ) "
+                    f"{np.mean([r['q_corr_expected'] for r in records]):.2f}, scale Q/Ḡ "
+                    f"{np.mean([r['q_scale_expected'] for r in records]):.2f}; a perfect critic would reach corr(Q, G) "
+                    f"{np.mean([r['return_ceiling'] for r in records]):.2f} (the noise of one rollout)",
+                ]
+                if all(k in r for r in records for k in CRITIC_BRANCHED)
+                else []
+            ),
             f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
         ]
         if "best" in means:  # the same targets for the checkpoint the validation episodes pick
