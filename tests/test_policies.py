@@ -20,6 +20,7 @@ VARIANTS = {
     "wo_tam": {"encoder": "mlp"},
     "wo_amix": {"mixer": "global"},
     "attention_monotonic": {"n_attention_layers": 1, "monotonic_mixer": True},
+    "rounds": {"rounds": 3},
 }
 ENVS = ["TaskAlloc/Almighty-v0", "TaskAlloc/EPT-v0", "TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"]
 
@@ -168,6 +169,34 @@ def test_options_that_do_not_apply_are_refused():
         with pytest.raises(ValueError, match="only without pre-assignment"):
             make_policy(rbf, task_order=order)
     assert make_policy(rbf, preassign=False).task_order == "sequential"
+
+
+def test_rounds_give_the_left_over_entities_the_untried_tasks():
+    """Every entity's cheapest task (0) needs more than all of them supply, so its candidates fall short and nobody is
+    sent. A second round offers the same entities the tasks not tried yet: task 1 gets the team its pointer rule picks
+    (entity 2, the lowest cost per unit). The decision the losses learn from stays the first round's."""
+    env = gym.make("TaskAlloc/Almighty-v0", n_skills=1, specialists=2)  # K = 1, N = 3, M = 2 (only its spaces)
+    supply = th.tensor([[[1.0], [1.0], [2.0]]])
+    pc = th.tensor([[[1.0, 2.0], [1.0, 2.0], [1.0, 2.0]]])
+    obs = {
+        "entity_features": th.cat([pc[..., :1], supply, th.zeros(1, 3, 4)], -1),
+        "task_features": th.tensor([[[100.0, 10.0, 0, 0, 0], [10.0, 2.0, 0, 0, 0]]]),
+        "entity_supply": supply, "task_demand": th.tensor([[[10.0], [2.0]]]), "task_reward": th.tensor([[100.0, 10.0]]),
+        "pair_cost": pc, "entity_mask": th.ones(1, 3, dtype=th.int8), "task_mask": th.ones(1, 2, dtype=th.int8),
+    }  # fmt: skip
+    view = parse_obs(obs)
+    one, two = make_policy(env), make_policy(env, rounds=2)
+    two.load_state_dict(one.state_dict())
+    first, both = one.decide(view, deterministic=True), two.decide(view, deterministic=True)
+    assert first.candidates[0, 0].all() and not first.kept.any()  # everybody chose task 0, which nobody can cover
+    assert first.env_action.tolist() == [[2, 2, 2]]
+    assert both.env_action.tolist() == [[2, 2, 1]]
+    for field in ("candidates", "pick_rank", "kept"):
+        assert th.equal(getattr(both, field), getattr(first, field))
+    with pytest.raises(ValueError, match="rounds must be a positive integer"):
+        make_policy(env, rounds=0)
+    with pytest.raises(ValueError, match="preassign=False"):
+        make_policy(env, rounds=2, preassign=False)
 
 
 @pytest.mark.parametrize(

@@ -79,6 +79,12 @@ published code):
    A_ij = P(c^{i→j}) − P(c), to the actor loss: a coordinate-wise improvement of the deployed pre-assignment on the
    step's profit (what the per-step MILP maximises exactly), which needs neither sampling nor a critic. The critics'
    term keeps what comes after the step (entities tied up travelling, tasks left for later).
+15. Decision rounds (``TAMPolicy(rounds=R)``, not in the paper, where R = 1): a task whose candidates fall short of its
+   demand keeps every entity that chose it idle for the step, although other tasks could use them. After each round
+   the entities the pointer did not pick pre-assign again, with the same actor and pointer, among the open tasks
+   that no round has tried yet (a task's candidates come from one round only), up to R rounds. The losses learn from
+   the first round's candidate sets and picks; the reward of the step, and so the stage-1 targets, include the teams
+   of the later rounds.
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

@@ -82,6 +82,10 @@ class TAMPolicy(BasePolicy):
         detail 10), else 1 (a random start is no rule to stay near)
     :param select_logit_scale: κ_s, the same for the pointer actor's logits; ``None``: 10 with ``heuristic_init``,
         else 1 (the paper's)
+    :param rounds: pre-assign rounds per decision (not in the paper, where there is one): after each round, the
+        entities the pointer did not pick pre-assign again among the open tasks that no round has tried yet, so a task
+        whose candidates fell short no longer holds every entity that chose it. The stored decision, which the losses
+        learn from, is the first round; the env action carries the teams of every round
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -121,6 +125,7 @@ class TAMPolicy(BasePolicy):
         logit_scale: float | None = None,
         select_logit_scale: float | None = None,
         n_critics: int = 2,
+        rounds: int = 1,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -148,10 +153,11 @@ class TAMPolicy(BasePolicy):
         ):
             if value not in choices:
                 raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
-        if not (isinstance(hidden_dim, int) and hidden_dim >= 1):
-            raise ValueError(f"hidden_dim must be a positive integer, got {hidden_dim!r}")
-        if not (isinstance(n_critics, int) and n_critics >= 1):
-            raise ValueError(f"n_critics must be a positive integer, got {n_critics!r}")
+        for name, count in (("hidden_dim", hidden_dim), ("n_critics", n_critics), ("rounds", rounds)):
+            if not (isinstance(count, int) and count >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {count!r}")
+        if rounds > 1 and not preassign:
+            raise ValueError("rounds > 1 repeats the pre-assignment; without it (preassign=False) tasks already pick in turn")
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
         self.pair_features = pair_features
@@ -173,6 +179,7 @@ class TAMPolicy(BasePolicy):
         self.logit_scale = float(logit_scale)
         self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
+        self.rounds = rounds
         self.heuristic_init = heuristic_init
         self.rule_weights = dict(rule_weights or {})
         if self.rule_weights:
@@ -312,6 +319,7 @@ class TAMPolicy(BasePolicy):
                 logit_scale=self.logit_scale,
                 select_logit_scale=self.select_logit_scale,
                 n_critics=self.n_critics,
+                rounds=self.rounds,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
@@ -379,15 +387,32 @@ class TAMPolicy(BasePolicy):
 
     def _decide_preassigned(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
         """Stage 1 (Algorithm 2): every free entity samples one open task (candidate sets C_j); stage 2 (Algorithm 3):
-        every task decodes its team from its own candidates, all in one round."""
+        every task decodes its team from its own candidates, all in one round. With ``rounds`` > 1 the entities left
+        over pre-assign again among the tasks not tried yet (see ``rounds``); the decision records the first round."""
         assert self.actor is not None
         B, N, M = view.pair_cost.shape
-        dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid) if uniform else self.actor(view)
-        c = th.where(view.assignable, dist.get_actions(deterministic), -1)
-        st = self.select_round(view, c, deterministic, uniform)
-        candidates = c.unsqueeze(1) == th.arange(M, device=c.device).view(1, M, 1)
-        kept = st.kept()
-        return Decision(env_action_of(st.rank, kept), candidates, st.rank, kept)
+        tasks = th.arange(M, device=view.pair_cost.device).view(1, M, 1)
+        first: Decision | None = None
+        env_action = th.full((B, N), M, dtype=th.long, device=view.pair_cost.device)
+        for _ in range(self.rounds):
+            if uniform:
+                dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid)
+            else:
+                dist = self.actor(view)
+            c = th.where(view.assignable, dist.get_actions(deterministic), -1)
+            st = self.select_round(view, c, deterministic, uniform)
+            candidates = c.unsqueeze(1) == tasks
+            kept = st.kept()
+            action = env_action_of(st.rank, kept)
+            if first is None:
+                first = Decision(action, candidates, st.rank, kept)
+            env_action = th.where(action < M, action, env_action)
+            tried = candidates.any(-1)
+            view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
+            if not bool(view.assignable.any()):
+                break
+        assert first is not None
+        return first._replace(env_action=env_action)
 
     def _decide_pooled(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
         """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the
