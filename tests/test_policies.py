@@ -195,8 +195,8 @@ def test_rounds_give_the_left_over_entities_the_untried_tasks():
         assert th.equal(getattr(both, field), getattr(first, field))
     with pytest.raises(ValueError, match="rounds must be a positive integer"):
         make_policy(env, rounds=0)
-    with pytest.raises(ValueError, match="preassign=False"):
-        make_policy(env, rounds=2, preassign=False)
+    pooled = make_policy(env, rounds=2, preassign=False)  # tasks pick in turn from one pool: rounds do not apply
+    assert pooled.decide(view, deterministic=True).env_action.tolist() == [[2, 2, 1]]
 
 
 @pytest.mark.parametrize(

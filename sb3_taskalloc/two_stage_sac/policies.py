@@ -85,7 +85,9 @@ class TAMPolicy(BasePolicy):
     :param rounds: pre-assign rounds per decision (not in the paper, where there is one): after each round, the
         entities the pointer did not pick pre-assign again among the open tasks that no round has tried yet, so a task
         whose candidates fell short no longer holds every entity that chose it. The stored decision, which the losses
-        learn from, is the first round; the env action carries the teams of every round
+        learn from, is the first round; the env action carries the teams of every round. Like ``rule_weights``, an
+        env's setting of its zoo config: without pre-assignment (``preassign=False``), where tasks already pick in turn
+        from one pool, it does not apply and is ignored
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -156,8 +158,6 @@ class TAMPolicy(BasePolicy):
         for name, count in (("hidden_dim", hidden_dim), ("n_critics", n_critics), ("rounds", rounds)):
             if not (isinstance(count, int) and count >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {count!r}")
-        if rounds > 1 and not preassign:
-            raise ValueError("rounds > 1 repeats the pre-assignment; without it (preassign=False) tasks already pick in turn")
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
         self.pair_features = pair_features
