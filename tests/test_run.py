@@ -126,26 +126,28 @@ def test_tensorboard_log(tmp_path):
 
 
 def test_demo_writes_its_outputs(tmp_path, capsys):
-    """``make demo``'s entry point, on a short budget: it compares with the baselines and writes what it promises."""
+    """``make demo``'s entry point, on a short budget: it compares with the baselines and writes what it promises, and
+    trains with the env's policy settings of its zoo block (MT's margin rule and two rounds)."""
     import json
 
     from sb3_taskalloc.experiments import demo
 
     demo.main(
-        ["--env", "TaskAlloc/EPT-v0", "--steps", "40", "--n-envs", "2", "--eval-episodes", "1", "--eval-every", "20",
+        ["--env", "TaskAlloc/MT-v0", "--steps", "40", "--n-envs", "2", "--eval-episodes", "1", "--eval-every", "20",
          "--threads", "1", "--out", str(tmp_path)]
     )  # fmt: skip
     record = json.loads((tmp_path / "results.json").read_text())
     assert [step for step, _ in record["eval_curve"]] == [20, 40]  # EvalCallback's deterministic evaluations, in env steps
     assert record["n_envs"] == 2 and len(list(tmp_path.glob("train/*.monitor.csv"))) == 2
     assert (tmp_path / "evaluations.npz").stat().st_size > 0
-    assert record["env"] == "TaskAlloc/EPT-v0" and record["steps"] == 40 and record["device"] in ("cpu", "cuda")
+    assert record["env"] == "TaskAlloc/MT-v0" and record["steps"] == 40 and record["device"] in ("cpu", "cuda")
     assert set(record["eval"]) == {"TwoStageSAC", "Greedy", "Random"}
     assert all(np.isfinite(mean) for mean, _ in record["eval"].values())
     for name in ("learning_curve.png", "episode.gif", "two_stage_sac.zip"):
         assert (tmp_path / name).stat().st_size > 0, name
     loaded = TwoStageSAC.load(tmp_path / "two_stage_sac.zip", device="cpu")
     assert loaded.num_timesteps == 40
+    assert loaded.policy.rounds == 2 and loaded.policy.rule_weights == {"margin": 3.0}
     assert "TwoStageSAC" in capsys.readouterr().out
 
 

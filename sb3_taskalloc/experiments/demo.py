@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     from envs.rendering import save_gif
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.baselines import GreedyAllocator, RandomAllocator
+    from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
     from sb3_taskalloc.experiments.plots import plot_learning_curve
 
     th.set_num_threads(args.threads)
@@ -55,7 +56,11 @@ def main(argv: list[str] | None = None) -> None:
             return True
 
     train_env = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, monitor_dir=str(out / "train"))
-    model = TwoStageSAC("TAMPolicy", train_env, learning_starts=min(500, args.steps // 3), seed=args.seed)
+    # The env's policy settings from its zoo block (its pre-assign rule, its decision rounds); the rest are the defaults.
+    policy_kwargs = zoo_hyperparameters(args.env).get("policy_kwargs", {})
+    model = TwoStageSAC(
+        "TAMPolicy", train_env, learning_starts=min(500, args.steps // 3), seed=args.seed, policy_kwargs=policy_kwargs
+    )
     print(f"training TwoStageSAC on {args.env} for {args.steps} steps on {args.n_envs} envs (one gradient step per batch)...")
     t0 = time.time()
     # Deterministic return on held-out episodes (reset seeds disjoint from training) while training: the sampled
