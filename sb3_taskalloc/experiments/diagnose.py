@@ -211,13 +211,18 @@ def _stack(observations: list[dict[str, np.ndarray]], device: th.device) -> dict
     return {k: th.as_tensor(np.stack([o[k] for o in observations]), device=device) for k in observations[0]}
 
 
+def _horizon(gamma: float) -> int:
+    """Steps until the discount γ^k falls below 1 %: how far the critic's returns are summed."""
+    return math.ceil(math.log(0.01) / math.log(gamma))
+
+
 def _long_env(env_id: str, gamma: float) -> tuple[gym.Env, int | None]:
-    """``env_id`` with its time limit extended until γ^k < 1 % (the critic's returns do not stop at the limit), and
+    """``env_id`` with its time limit extended by :func:`_horizon` (the critic's returns do not stop at the limit), and
     the limit proper (None without one)."""
     limit = gym.spec(env_id).max_episode_steps
     if limit is None:
         return gym.make(env_id), None
-    return gym.make(env_id, max_episode_steps=limit + math.ceil(math.log(0.01) / math.log(gamma))), limit
+    return gym.make(env_id, max_episode_steps=limit + _horizon(gamma)), limit
 
 
 def _learned_reward(model: Any, reward: SupportsFloat, info: dict[str, Any]) -> float:
@@ -273,7 +278,6 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
     if policy.actor is None or policy.critic is None:
         return out
     env, limit = _long_env(env_id, gamma)
-    horizon = math.ceil(math.log(0.01) / math.log(gamma))
     q, returns, free = [], [], []
     for s in seeds:
         obs, _ = env.reset(seed=s)
@@ -284,7 +288,7 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
             if t % stride == 0 and bool(view.assignable.any()):
                 assign = decision.candidates.transpose(1, 2).float()
                 q.append(float(th.stack(policy.critic(view, assign), 0).min(0).values.item()))
-                returns.append(_branch_returns(model, env, action, branches, horizon, key=1_000 * s + t))
+                returns.append(_branch_returns(model, env, action, branches, _horizon(gamma), key=1_000 * s + t))
                 free.append(float(view.assignable.sum()))
             obs, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:

@@ -52,6 +52,12 @@ CRITIC_COLUMNS = {
 }
 CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
 
+
+def has_branched(records: list[dict[str, Any]]) -> bool:
+    """Whether every record holds the critic's figures against the expected return (:data:`CRITIC_BRANCHED`)."""
+    return all(k in r for r in records for k in CRITIC_BRANCHED)
+
+
 #: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
 PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
 
@@ -212,17 +218,8 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import diagnose
 
         d = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
-        return dict(
-            q_corr=d.q_corr,
-            q_scale=d.q_scale,
-            sampled=d.sampled_return,
-            critic_reward=d.reward_timing,
-            q_corr_expected=d.q_corr_expected,
-            q_scale_expected=d.q_scale_expected,
-            return_ceiling=d.return_ceiling,
-            free_corr_q=d.free_corr_q,
-            free_corr_expected=d.free_corr_expected,
-        )
+        branched = {k: getattr(d, k) for k in CRITIC_BRANCHED}
+        return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing, **branched)
 
     def _complete(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
         """A finished seed, with what later versions measure added from its saved model (and saved):
@@ -230,15 +227,15 @@ class LearnRun:
         - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
           critic's own reward unless it learned the commitment reward: then the figures are measured again;
         - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`;
-        - a record without ``q_corr_expected`` gets the critic's figures against the expected return (the same seeded
-          diagnosis, so its other critic figures come out as they were).
+        - a record without the figures of :data:`CRITIC_BRANCHED` gets them, the critic against the expected return (the
+          same seeded diagnosis, so its other critic figures come out as they were).
 
         Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
         """
         stale = "critic_reward" not in record and self.hyperparameters.get("reward_timing", "completion") == "commitment"
         if "critic_reward" not in record and not stale:
             record = {**record, "critic_reward": "completion"}
-        branched = all(k in record for k in CRITIC_BRANCHED)
+        branched = has_branched([record])
         if not stale and "actor_only" in record and branched:
             return record
         zip_path = path.with_suffix(".zip")
@@ -327,7 +324,7 @@ class LearnRun:
         shown = ["untrained", "trained", *stages, *selected, "Greedy", "MILP", *([best_planner] if best_planner else [])]
         names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned"}
         headers = [names.get(c, c) for c in shown]
-        critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if all(k in r for r in records for k in CRITIC_BRANCHED) else [])]
+        critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
         critic_headers = [CRITIC_COLUMNS[c] for c in critic]
         lines = [
             f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
@@ -389,7 +386,7 @@ class LearnRun:
                     f"{np.mean([r['q_scale_expected'] for r in records]):.2f}; a perfect critic would reach corr(Q, G) "
                     f"{np.mean([r['return_ceiling'] for r in records]):.2f} (the noise of one rollout)",
                 ]
-                if all(k in r for r in records for k in CRITIC_BRANCHED)
+                if has_branched(records)
                 else []
             ),
             f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",

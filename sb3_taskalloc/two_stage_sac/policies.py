@@ -394,7 +394,7 @@ class TAMPolicy(BasePolicy):
         tasks = th.arange(M, device=view.pair_cost.device).view(1, M, 1)
         first: Decision | None = None
         env_action = th.full((B, N), M, dtype=th.long, device=view.pair_cost.device)
-        for _ in range(self.rounds):
+        for r in range(self.rounds):
             if uniform:
                 dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid)
             else:
@@ -407,6 +407,8 @@ class TAMPolicy(BasePolicy):
             if first is None:
                 first = Decision(action, candidates, st.rank, kept)
             env_action = th.where(action < M, action, env_action)
+            if r + 1 == self.rounds:  # no round follows: skip the next view and its device sync
+                break
             tried = candidates.any(-1)
             view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
             if not bool(view.assignable.any()):
