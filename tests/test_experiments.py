@@ -260,6 +260,26 @@ def test_calibration_figures_separate_the_critic_from_the_noise():
         calibration_figures(mu, returns[:, :1], free)
 
 
+def test_advantage_figures_separate_the_critic_from_the_noise():
+    """Paired differences d_k = Δμ + ε_k with Var Δμ = 1 and Var ε = 4 over K = 4 branches: the pair means have variance
+    2, so a critic ΔQ = Δμ correlates with them by sqrt(1/2), the ceiling, and agrees in sign with probability
+    1/2 + arcsin(sqrt(1/2))/π = 3/4 (bivariate normal); a critic blind to the decisions reaches neither."""
+    from sb3_taskalloc.experiments.diagnose import advantage_figures
+
+    rng = np.random.default_rng(0)
+    delta = rng.normal(size=40_000)
+    differences = delta[:, None] + 2 * rng.normal(size=(40_000, 4))
+    got = advantage_figures(delta, differences)
+    assert got["advantage_pairs"] == 40_000
+    assert got["advantage_ceiling"] == pytest.approx(np.sqrt(0.5), abs=0.01)
+    assert got["advantage_corr"] == pytest.approx(np.sqrt(0.5), abs=0.01)
+    assert got["advantage_sign"] == pytest.approx(0.75, abs=0.01)
+    blind = advantage_figures(rng.normal(size=40_000), differences)
+    assert abs(blind["advantage_corr"]) < 0.02 and blind["advantage_sign"] == pytest.approx(0.5, abs=0.01)
+    with pytest.raises(ValueError, match="K >= 2"):
+        advantage_figures(delta, differences[:, :1])
+
+
 def test_branch_calibration_branches_the_env_randomness():
     """Copies of a state draw their own arrivals (seeded per copy, so they are reproducible), and the calibration
     branches every ``stride``-th state of each episode."""
@@ -284,6 +304,14 @@ def test_branch_calibration_branches_the_env_randomness():
     assert all(np.array_equal(stepped[k], reference[k]) for k in stepped)
     figures = branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
     assert figures["branch_states"] == 2 and 0 <= figures["return_ceiling"] <= 1
+    # A uniform actor: the second sampled decision differs from the executed one at every branched state.
+    uniform = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"heuristic_init": False})
+    th.manual_seed(1)
+    paired = branch_calibration(uniform, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
+    assert paired["advantage_pairs"] == paired["branch_states"] == 2 and 0 <= paired["advantage_sign"] <= 1
+    th.manual_seed(1)  # reproducible: the pairs draw from their own seeded stream
+    again = branch_calibration(uniform, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
+    assert again == pytest.approx(paired, nan_ok=True)
     with pytest.raises(ValueError, match="branches"):
         branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=1)
 
@@ -330,6 +358,12 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path):
     branched = run.run_seed(0)
     assert branched["q_corr_expected"] == pytest.approx(record["q_corr_expected"], nan_ok=True)
     assert branched["q_corr"] == pytest.approx(record["q_corr"])
+    # Without the decision-pair figures (a later version): the same, and the table gains their columns.
+    path.write_text(json.dumps({k: v for k, v in record.items() if k not in learn.CRITIC_ADVANTAGE}))
+    paired = run.run_seed(0)
+    assert paired["advantage_sign"] == pytest.approx(record["advantage_sign"], nan_ok=True)
+    assert paired["q_corr_expected"] == pytest.approx(record["q_corr_expected"], nan_ok=True)
+    assert "corr(ΔQ, ΔḠ)" in run.write([paired]).read_text()
     path.write_text(json.dumps(stale))
     path.with_suffix(".zip").unlink()
     with pytest.warns(UserWarning, match="is gone"):

@@ -19,6 +19,11 @@
   sqrt(Var E[G|s,c] / Var G) is the correlation with one-rollout returns that a perfect critic would reach (the noise
   bound of corr(Q, G)). The correlations of Q and of Ḡ with the number of free entities show a critic that values
   free entities the returns do not;
+- the critic's preferences between decisions, what the actor's gradient follows (:func:`advantage_figures`): at each
+  branched state a second sampled pre-assignment c′ (where it differs from c) is branched with the same env seeds, and
+  the difference Q(s, c) − Q(s, c′) is compared with the paired difference of the branch returns ΔḠ. A critic whose
+  state values track Ḡ can still rank the decisions of one state at random: state values vary with the time and the
+  free entities, the advantages between decisions are much smaller;
 - the entropy bonus of the stage-1 target against the reward: mean γ·α·H(s') and mean |r| per transition;
 - the actor against its initial rule: KL(π ‖ π₀) per free entity and the share of free entities whose argmax task
   changed;
@@ -86,6 +91,10 @@ class Diagnosis:
     return_ceiling: float = math.nan
     free_corr_q: float = math.nan
     free_corr_expected: float = math.nan
+    advantage_pairs: int = 0
+    advantage_corr: float = math.nan
+    advantage_ceiling: float = math.nan
+    advantage_sign: float = math.nan
 
     def table(self) -> str:
         """A Markdown table of the figures."""
@@ -103,6 +112,10 @@ class Diagnosis:
                 f"{self.q_corr_expected:.3f}, {self.q_scale_expected:.3f}; {self.return_ceiling:.3f}",
             ),
             ("corr with the number of free entities: Q / Ḡ", f"{self.free_corr_q:.3f} / {self.free_corr_expected:.3f}"),
+            (
+                f"decision pairs ({self.advantage_pairs}): corr(ΔQ, ΔḠ); its ceiling; same sign",
+                f"{self.advantage_corr:.3f}; {self.advantage_ceiling:.3f}; {100 * self.advantage_sign:.1f} %",
+            ),
             ("entropy-inclusive return G^H, mean; corr(Q, G^H)", f"{self.soft_return_mean:.3f}, {self.q_corr_soft:.3f}"),
             ("γ·α·H(s') per transition / mean |r|", f"{self.entropy_bonus_mean:.3f} / {self.abs_reward_mean:.3f}"),
             ("KL(π ‖ π₀) per free entity", f"{self.kl_per_entity:.2e}"),
@@ -264,7 +277,8 @@ def _branch_returns(model: Any, snapshot: gym.Env, action: np.ndarray, branches:
 def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int = 8, stride: int = 10) -> dict[str, Any]:
     """The critic against the expected return (see the module docstring): the figures ``branch_states``,
     ``q_corr_expected``, ``q_scale_expected``, ``return_ceiling``, ``free_corr_q`` and ``free_corr_expected`` of
-    :class:`Diagnosis`, measured on sampled episodes with reset seeds ``seeds`` (NaN without a pre-assign critic).
+    :class:`Diagnosis`, and the ``advantage_*`` figures of :func:`advantage_figures`, measured on sampled episodes with
+    reset seeds ``seeds`` (NaN without a pre-assign critic).
 
     :param branches: rollouts per state (≥ 2: the ceiling needs their spread)
     :param stride: every ``stride``-th state of an episode is branched
@@ -274,11 +288,13 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
     policy, gamma = model.policy, float(model.gamma)
     nan = float("nan")
     out: dict[str, Any] = dict(branch_states=0, q_corr_expected=nan, q_scale_expected=nan, return_ceiling=nan)
-    out.update(free_corr_q=nan, free_corr_expected=nan)
+    out.update(free_corr_q=nan, free_corr_expected=nan, advantage_pairs=0, advantage_corr=nan, advantage_ceiling=nan)
+    out.update(advantage_sign=nan)
     if policy.actor is None or policy.critic is None:
         return out
     env, limit = _long_env(env_id, gamma)
-    q, returns, free = [], [], []
+    cuda = [model.device.index or 0] if model.device.type == "cuda" else []
+    q, returns, free, gaps, gap_returns = [], [], [], [], []
     for s in seeds:
         obs, _ = env.reset(seed=s)
         for t in range(limit if limit is not None else 10**9):
@@ -286,16 +302,59 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
             decision = policy.decide(view, deterministic=False)
             action = decision.env_action[0].cpu().numpy()
             if t % stride == 0 and bool(view.assignable.any()):
-                assign = decision.candidates.transpose(1, 2).float()
-                q.append(float(th.stack(policy.critic(view, assign), 0).min(0).values.item()))
-                returns.append(_branch_returns(model, env, action, branches, _horizon(gamma), key=1_000 * s + t))
+                key = 1_000 * s + t
+                q_c = _critic_value(policy, view, decision.candidates)
+                q.append(q_c)
+                returns.append(_branch_returns(model, env, action, branches, _horizon(gamma), key=key))
                 free.append(float(view.assignable.sum()))
+                # The alternative draws from its own seeded stream: the figures above stay those of the stream alone.
+                with th.random.fork_rng(devices=cuda):
+                    th.manual_seed(key)
+                    other = policy.decide(view, deterministic=False)
+                    if not th.equal(other.candidates, decision.candidates):
+                        alt = _branch_returns(model, env, other.env_action[0].cpu().numpy(), branches, _horizon(gamma), key)
+                        gaps.append(q_c - _critic_value(policy, view, other.candidates))
+                        gap_returns.append(returns[-1] - alt)
             obs, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:
                 break
     if len(q) < 2:
         return {**out, "branch_states": len(q)}
-    return calibration_figures(np.asarray(q), np.stack(returns), np.asarray(free))
+    figures = calibration_figures(np.asarray(q), np.stack(returns), np.asarray(free))
+    if len(gaps) >= 2:
+        figures.update(advantage_figures(np.asarray(gaps), np.stack(gap_returns)))
+    else:
+        figures.update(advantage_pairs=len(gaps), advantage_corr=nan, advantage_ceiling=nan, advantage_sign=nan)
+    return figures
+
+
+def _critic_value(policy: Any, view: ObsView, candidates: th.Tensor) -> float:
+    """Q(s, c) = min_k AMIX^k of one state and its candidate sets (1, M, N)."""
+    return float(th.stack(policy.critic(view, candidates.transpose(1, 2).float()), 0).min(0).values.item())
+
+
+def advantage_figures(gaps: np.ndarray, differences: np.ndarray) -> dict[str, Any]:
+    """The critic's preference between two decisions of a state against the returns they lead to.
+
+    With the branches of both decisions paired by their env seeds, d_k = G_k(c) − G_k(c′) = Δμ + ε_k. The paired means
+    d̄ estimate Δμ = E[G|s,c] − E[G|s,c′] with noise Var(ε)/K, so a critic whose ΔQ equals Δμ correlates with d̄ by
+    sqrt(Var Δμ / Var d̄): the ceiling of corr(ΔQ, ΔḠ). Same sign: the share of pairs whose ΔQ and d̄ agree in sign,
+    i.e. where the critic prefers the decision whose branches did better.
+
+    :param gaps: (P,) Q(s, c) − Q(s, c′) of the decision pairs
+    :param differences: (P, K) the paired branch returns G_k(c) − G_k(c′)
+    """
+    if differences.ndim != 2 or differences.shape[1] < 2 or len(gaps) != len(differences):
+        raise ValueError(f"need (P,) gaps and (P, K >= 2) paired differences, got {gaps.shape} and {differences.shape}")
+    mean = differences.mean(1)
+    noise = float(differences.var(1, ddof=1).mean()) / differences.shape[1]  # Var of a pair's mean around Δμ
+    total = float(mean.var(ddof=1))
+    return dict(
+        advantage_pairs=len(gaps),
+        advantage_corr=_corr(gaps, mean),
+        advantage_ceiling=math.sqrt(max(total - noise, 0.0) / total) if total > 0 else float("nan"),
+        advantage_sign=float(np.mean(np.sign(gaps) == np.sign(mean))),
+    )
 
 
 def calibration_figures(q: np.ndarray, returns: np.ndarray, free: np.ndarray) -> dict[str, Any]:

@@ -40,7 +40,8 @@ from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, training_env, zoo_hyperparameters
 
 #: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
-#: the expected return Ḡ, the correlation a perfect critic would reach against G, and with the number of free entities.
+#: the expected return Ḡ, the correlation a perfect critic would reach against G, with the number of free entities, and
+#: its preference between two decisions of a state against their paired branch returns (ΔQ against ΔḠ).
 CRITIC_COLUMNS = {
     "q_corr": "corr(Q, G)",
     "q_scale": "scale Q/G",
@@ -49,13 +50,18 @@ CRITIC_COLUMNS = {
     "return_ceiling": "ceiling",
     "free_corr_q": "corr(Q, free)",
     "free_corr_expected": "corr(Ḡ, free)",
+    "advantage_corr": "corr(ΔQ, ΔḠ)",
+    "advantage_ceiling": "ΔḠ ceiling",
+    "advantage_sign": "same sign",
 }
 CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
+CRITIC_ADVANTAGE = ["advantage_corr", "advantage_ceiling", "advantage_sign"]
 
 
-def has_branched(records: list[dict[str, Any]]) -> bool:
-    """Whether every record holds the critic's figures against the expected return (:data:`CRITIC_BRANCHED`)."""
-    return all(k in r for r in records for k in CRITIC_BRANCHED)
+def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
+    """Whether every record holds the critic's figures ``keys`` of the branched rollouts (:data:`CRITIC_BRANCHED`, or
+    :data:`CRITIC_ADVANTAGE`: each set came with a later version of :mod:`.diagnose`)."""
+    return all(k in r for r in records for k in keys)
 
 
 #: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
@@ -218,7 +224,7 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import diagnose
 
         d = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
-        branched = {k: getattr(d, k) for k in CRITIC_BRANCHED}
+        branched = {k: getattr(d, k) for k in [*CRITIC_BRANCHED, *CRITIC_ADVANTAGE]}
         return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing, **branched)
 
     def _complete(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -227,15 +233,15 @@ class LearnRun:
         - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
           critic's own reward unless it learned the commitment reward: then the figures are measured again;
         - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`;
-        - a record without the figures of :data:`CRITIC_BRANCHED` gets them, the critic against the expected return (the
-          same seeded diagnosis, so its other critic figures come out as they were).
+        - a record without the figures of :data:`CRITIC_BRANCHED` or :data:`CRITIC_ADVANTAGE` gets them, the critic
+          against the expected return (the same seeded diagnosis, so its other critic figures come out as they were).
 
         Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
         """
         stale = "critic_reward" not in record and self.hyperparameters.get("reward_timing", "completion") == "commitment"
         if "critic_reward" not in record and not stale:
             record = {**record, "critic_reward": "completion"}
-        branched = has_branched([record])
+        branched = has_branched([record]) and has_branched([record], CRITIC_ADVANTAGE)
         if not stale and "actor_only" in record and branched:
             return record
         zip_path = path.with_suffix(".zip")
@@ -325,6 +331,7 @@ class LearnRun:
         names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned"}
         headers = [names.get(c, c) for c in shown]
         critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
+        critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
         critic_headers = [CRITIC_COLUMNS[c] for c in critic]
         lines = [
             f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
@@ -387,6 +394,16 @@ class LearnRun:
                     f"{np.mean([r['return_ceiling'] for r in records]):.2f} (the noise of one rollout)",
                 ]
                 if has_branched(records)
+                else []
+            ),
+            *(
+                [
+                    f"- the critic between two sampled decisions of a state (what the actor follows): corr(ΔQ, ΔḠ) "
+                    f"{np.mean([r['advantage_corr'] for r in records]):.2f} against a ceiling of "
+                    f"{np.mean([r['advantage_ceiling'] for r in records]):.2f} (the noise of the paired branches); ΔQ "
+                    f"has the sign of ΔḠ in {100 * np.mean([r['advantage_sign'] for r in records]):.0f} % of the pairs",
+                ]
+                if has_branched(records, CRITIC_ADVANTAGE)
                 else []
             ),
             f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
