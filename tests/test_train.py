@@ -604,3 +604,41 @@ def test_preassign_profit_loss_closed_form():
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.actor.parameters())
     with pytest.raises(ValueError, match="profit_coef"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", profit_coef=-1.0)
+
+
+def test_preassign_search_loss_distils_the_best_sample():
+    """The search term's target is the sampled pre-assignment with the highest step profit, the argmax where none beats
+    it: recomputed here from the same samples, its loss is −Σ_i log π_i(c*_i) over the states it improves, and a step
+    on it raises the log-probability of c*; with one sample (the argmax alone) the term is 0."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/RBF-v0")
+    obs = [env.reset(seed=s)[0] for s in range(4)]
+    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    head = model.selector.head
+    dist = model.actor(view)
+    th.manual_seed(0)
+    search = losses.preassign_search_loss(dist, head, view, samples=8, temperature=4.0)
+    with th.no_grad():
+        th.manual_seed(0)
+        free = view.assignable
+        c = th.where(free, dist.get_actions(True), -1)
+        drawn = th.distributions.Categorical(logits=dist.logits / 4.0).sample((7,))
+        expected, gains = [], []
+        for b in range(4):
+            cands = [c[b]] + [th.where(free[b], drawn[k, b], -1) for k in range(7)]
+            rows = ObsView(*(x[b : b + 1] for x in view))
+            profits = [float(losses.round_profit(head, rows, x.unsqueeze(0))[0]) for x in cands]
+            gains.append(max(profits) - profits[0])
+            if max(profits) > profits[0]:
+                best = cands[int(np.argmax(profits))]
+                expected.append(-dist.log_probs[b, free[b]].gather(1, best[free[b]].unsqueeze(-1)).sum())
+    assert expected, "no sample beat the argmax: the case checks nothing"
+    th.testing.assert_close(search.loss.detach(), th.stack(expected).mean(), atol=1e-5, rtol=1e-5)
+    assert float(search.improved) == pytest.approx(len(expected) / 4)
+    assert float(search.gain) == pytest.approx(np.mean(gains), abs=1e-4)
+    search.loss.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.actor.parameters())
+    assert float(losses.preassign_search_loss(model.actor(view), head, view, samples=1, temperature=4.0).loss) == 0.0
+    for bad in ({"search_coef": -1.0}, {"search_temperature": 0.0}, {"search_samples": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)

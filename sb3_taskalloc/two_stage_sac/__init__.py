@@ -85,6 +85,13 @@ published code):
    that no round has tried yet (a task's candidates come from one round only), up to R rounds. The losses learn from
    the first round's candidate sets and picks; the reward of the step, and so the stage-1 targets, include the teams
    of the later rounds.
+16. Search distillation (``search_coef`` λ_s, not in the paper): per state, the argmax pre-assignment c and K − 1 joint
+   pre-assignments sampled from π^(1/T) are decoded deterministically and scored by the step's profit P (detail 14);
+   where the best, c*, beats c, the actor loss adds −λ_s·Σ_i log π_i(c*_i|s) over the free entities. Detail 14 and
+   the critics' gradient move the argmax one entity at a time; a sample moves many entities at once and finds joint
+   changes (a team assembled elsewhere) that no single move improves, which is where the per-step MILP gains over the
+   rule. As the argmax improves, so do the samples around it (a policy improvement by search, distilled). The critics'
+   term keeps what comes after the step.
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

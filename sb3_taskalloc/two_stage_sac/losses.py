@@ -178,6 +178,48 @@ def preassign_profit_loss(dist: MaskedCategorical, head: PointerHead, view: ObsV
     return per_entity[moved].mean() if bool(moved.any()) else per_entity.sum() * 0.0
 
 
+class SearchLoss(NamedTuple):
+    loss: th.Tensor  # −mean over the improved states of log π(c* | s) = Σ_i log π_i(c*_i | s) (0 if none improved)
+    improved: th.Tensor  # share of the states where a sample beat the argmax pre-assignment
+    gain: th.Tensor  # mean P(c*) − P(c) over the states
+
+
+def preassign_search_loss(
+    dist: MaskedCategorical, head: PointerHead, view: ObsView, samples: int, temperature: float
+) -> SearchLoss:
+    """Distillation of a sampled search on the step's profit (implementation detail 16): per state, the argmax
+    pre-assignment c and ``samples`` − 1 joint pre-assignments drawn from π^(1/T) are decoded deterministically; where
+    the best of them, c*, has a higher profit P than c, the loss raises log π(c*|s) = Σ_i log π_i(c*_i|s), summed over
+    the free entities as the prior's KL is. A factorised actor's argmax moves one entity at a time under a gradient, a sample moves many at
+    once: c* can be a joint change that no single move improves on.
+
+    :param dist: the actor's distribution on ``view`` (with gradient)
+    :param head: the pointer actor, decoding deterministically
+    :param samples: K, pre-assignments per state including the argmax (1: the term is 0)
+    :param temperature: T of the sampling distribution (> 1: more entities move away from their argmax)
+    """
+    B, N = view.assignable.shape
+    with th.no_grad():
+        free = view.assignable
+        c = th.where(free, dist.get_actions(True), -1)  # (B, N)
+        drawn = (
+            th.distributions.Categorical(logits=dist.logits / temperature).sample((samples - 1,))  # (K-1, B, N)
+            if samples > 1
+            else c.new_empty((0, B, N))
+        )
+        cs = th.cat([c.unsqueeze(0), th.where(free, drawn, -1)], 0).transpose(0, 1)  # (B, K, N), argmax first
+        rep = ObsView(*(x.repeat_interleave(samples, 0) for x in view))
+        profit = round_profit(head, rep, cs.reshape(B * samples, N)).view(B, samples)
+        best = profit.argmax(1)  # the first maximum: the argmax itself where nothing beats it
+        improved = profit.gather(1, best.unsqueeze(1)).squeeze(1) > profit[:, 0]
+        target = cs[th.arange(B, device=c.device), best]  # (B, N)
+        gain = (profit.max(1).values - profit[:, 0]).mean()
+    log_p = th.gather(dist.log_probs, 2, target.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
+    per_state = -(log_p * free).sum(1)
+    loss = per_state[improved].mean() if bool(improved.any()) else per_state.sum() * 0.0
+    return SearchLoss(loss, improved.float().mean(), gain)
+
+
 def ent_coef_loss(log_alpha: th.Tensor, entropy: th.Tensor, target: th.Tensor) -> th.Tensor:
     """log α·(H − H*): α grows while the entropy is below its target (SB3's SAC, per-entity or per-pick entropies)."""
     return (log_alpha * (entropy - target).detach()).mean()

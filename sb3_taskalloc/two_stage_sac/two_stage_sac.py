@@ -108,6 +108,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         the change of the step's profit without the critics
     :param profit_entities: entities moved per state by that term
     :param profit_batch_size: rows of each minibatch used by that term (each costs ``profit_entities`` × M decodes)
+    :param search_coef: weight λ_s of the search-distillation term in the pre-assign actor's loss (implementation detail
+        16, not in the paper; 0: off): the actor learns the best of ``search_samples`` sampled pre-assignments of a
+        state by the step's profit, where it beats the argmax
+    :param search_samples: pre-assignments per state of that term, the argmax included
+    :param search_temperature: temperature of that term's samples
+    :param search_batch_size: rows of each minibatch used by that term (each costs ``search_samples`` decodes)
     :param target_update_interval: target network update interval (gradient steps)
     :param select_batch_size: rows of each minibatch used by the select stage (each row holds up to M × team-size
         transitions, so a few rows suffice; the decoding loop is the costly part of a gradient step)
@@ -157,6 +163,10 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         profit_coef: float = 0.0,
         profit_entities: int = 4,
         profit_batch_size: int = 4,
+        search_coef: float = 0.0,
+        search_samples: int = 32,
+        search_temperature: float = 2.0,
+        search_batch_size: int = 16,
         target_update_interval: int = 1,
         select_batch_size: int = 16,
         stats_window_size: int = 100,
@@ -199,6 +209,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "n_steps": n_steps,
             "profit_entities": profit_entities,
             "profit_batch_size": profit_batch_size,
+            "search_samples": search_samples,
+            "search_batch_size": search_batch_size,
         }
         for name, count in counts.items():
             if not (isinstance(count, int) and count >= 1):
@@ -231,6 +243,14 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.profit_coef = float(profit_coef)
         self.profit_entities = profit_entities
         self.profit_batch_size = profit_batch_size
+        if not (math.isfinite(search_coef) and search_coef >= 0.0):
+            raise ValueError(f"search_coef must be a finite number >= 0, got {search_coef!r}")
+        if not (math.isfinite(search_temperature) and search_temperature > 0.0):
+            raise ValueError(f"search_temperature must be a finite number > 0, got {search_temperature!r}")
+        self.search_coef = float(search_coef)
+        self.search_samples = search_samples
+        self.search_temperature = float(search_temperature)
+        self.search_batch_size = search_batch_size
         self.prior_coef = float(prior_coef)
         self.select_prior_coef = float(select_prior_coef)
         self.target_update_interval = target_update_interval
@@ -397,6 +417,18 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                         profit = losses.preassign_profit_loss(rows_dist, self.selector.head, rows_view, self.profit_entities)
                         logs["profit_loss"].append(profit.item())
                         actor_loss = actor_loss + self.profit_coef * profit
+                    # Search distillation on the first rows (detail 16): each costs search_samples decodes.
+                    if self.search_coef > 0:
+                        search_rows = slice(0, self.search_batch_size)
+                        rows_view = ObsView(*(x[search_rows] for x in obs))
+                        rows_dist = MaskedCategorical(dist.logits[search_rows], rows_view.valid)  # the actor pass above
+                        search = losses.preassign_search_loss(
+                            rows_dist, self.selector.head, rows_view, self.search_samples, self.search_temperature
+                        )
+                        logs["search_loss"].append(search.loss.item())
+                        logs["search_improved"].append(search.improved.item())
+                        logs["search_gain"].append(search.gain.item())
+                        actor_loss = actor_loss + self.search_coef * search.loss
                     # Disjoint parameters: one backward pass gives each network its own gradient.
                     self.critic.optimizer.zero_grad()
                     self.actor.optimizer.zero_grad()
