@@ -190,8 +190,8 @@ def preassign_search_loss(
     """Distillation of a sampled search on the step's profit (implementation detail 16): per state, the argmax
     pre-assignment c and ``samples`` − 1 joint pre-assignments drawn from π^(1/T) are decoded deterministically; where
     the best of them, c*, has a higher profit P than c, the loss raises log π(c*|s) = Σ_i log π_i(c*_i|s), summed over
-    the free entities as the prior's KL is. A factorised actor's argmax moves one entity at a time under a gradient, a sample moves many at
-    once: c* can be a joint change that no single move improves on.
+    the free entities as the prior's KL is. A factorised actor's argmax moves one entity at a time under a gradient, a
+    sample moves many at once: c* can be a joint change that no single move improves on.
 
     :param dist: the actor's distribution on ``view`` (with gradient)
     :param head: the pointer actor, decoding deterministically
