@@ -622,10 +622,11 @@ def test_preassign_search_loss_distils_the_best_sample():
         th.manual_seed(0)
         free = view.assignable
         c = th.where(free, dist.get_actions(True), -1)
-        drawn = th.distributions.Categorical(logits=dist.logits / 4.0).sample((7,))
+        N = free.shape[1]
+        drawn = th.multinomial(th.softmax(dist.logits / 4.0, -1).reshape(4 * N, -1), 7, replacement=True).view(4, N, 7)
         expected, gains = [], []
         for b in range(4):
-            cands = [c[b]] + [th.where(free[b], drawn[k, b], -1) for k in range(7)]
+            cands = [c[b]] + [th.where(free[b], drawn[b, :, k], -1) for k in range(7)]
             rows = ObsView(*(x[b : b + 1] for x in view))
             profits = [float(losses.round_profit(head, rows, x.unsqueeze(0))[0]) for x in cands]
             gains.append(max(profits) - profits[0])

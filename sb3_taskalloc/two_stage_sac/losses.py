@@ -19,7 +19,7 @@ from torch.nn import functional as F
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
 from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
-from sb3_taskalloc.two_stage_sac.select_stage import decode_round, stored_rounds, teacher_forced
+from sb3_taskalloc.two_stage_sac.select_stage import round_profit, sampled_search, stored_rounds, teacher_forced
 
 
 @contextmanager
@@ -135,13 +135,6 @@ def preassign_actor_loss(
     return loss.mean()
 
 
-def round_profit(head: PointerHead, view: ObsView, task_of: th.Tensor) -> th.Tensor:
-    """(B,) the internal profit Σ_j kept_j·(r_j − Σ pair costs of j's team) of the deterministic select stage on the
-    candidate sets ``task_of``: what the env credits when the teams commit (its commitment reward before decay)."""
-    st = decode_round(head, view, task_of, deterministic=True)
-    return (st.kept() * (view.reward - st.cost)).sum(-1)
-
-
 def preassign_profit_loss(dist: MaskedCategorical, head: PointerHead, view: ObsView, n_entities: int) -> th.Tensor:
     """Exact one-step improvement of the deterministic pre-assignment (implementation detail 14): for ``n_entities``
     random free entities i of each state, the advantage A_ij = P(c^{i→j}) − P(c) of moving i from its argmax task to each
@@ -198,22 +191,12 @@ def preassign_search_loss(
     :param samples: K, pre-assignments per state including the argmax (1: the term is 0)
     :param temperature: T of the sampling distribution (> 1: more entities move away from their argmax)
     """
-    B, N = view.assignable.shape
     with th.no_grad():
-        free = view.assignable
-        c = th.where(free, dist.get_actions(True), -1)  # (B, N)
-        drawn = (
-            th.distributions.Categorical(logits=dist.logits / temperature).sample((samples - 1,))  # (K-1, B, N)
-            if samples > 1
-            else c.new_empty((0, B, N))
-        )
-        cs = th.cat([c.unsqueeze(0), th.where(free, drawn, -1)], 0).transpose(0, 1)  # (B, K, N), argmax first
-        rep = ObsView(*(x.repeat_interleave(samples, 0) for x in view))
-        profit = round_profit(head, rep, cs.reshape(B * samples, N)).view(B, samples)
-        best = profit.argmax(1)  # the first maximum: the argmax itself where nothing beats it
-        improved = profit.gather(1, best.unsqueeze(1)).squeeze(1) > profit[:, 0]
-        target = cs[th.arange(B, device=c.device), best]  # (B, N)
-        gain = (profit.max(1).values - profit[:, 0]).mean()
+        found = sampled_search(dist, head, view, samples, temperature)
+        improved = found.profit > found.base
+        target = found.candidates
+        gain = (found.profit - found.base).mean()
+    free = view.assignable
     log_p = th.gather(dist.log_probs, 2, target.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
     per_state = -(log_p * free).sum(1)
     loss = per_state[improved].mean() if bool(improved.any()) else per_state.sum() * 0.0

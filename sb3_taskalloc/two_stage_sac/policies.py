@@ -26,7 +26,7 @@ from sb3_taskalloc.common.torch_layers import (
     PointerHead,
     parse_obs,
 )
-from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of, sampled_search
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
 #: the pre-assign actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight
@@ -88,6 +88,13 @@ class TAMPolicy(BasePolicy):
         learn from, is the first round; the env action carries the teams of every round. Like ``rule_weights``, an
         env's setting of its zoo config: without pre-assignment (``preassign=False``), where tasks already pick in turn
         from one pool, it does not apply and is ignored
+    :param decision_samples: decision-time search (not in the paper; 1: off): a deterministic decision takes, for its
+        first round, the best by the step's profit of the argmax pre-assignment and ``decision_samples`` − 1 joint
+        pre-assignments sampled from π^(1/T) (:func:`.select_stage.sampled_search`, implementation detail 16), the
+        sampling decoding of attention models for routing. The samples come from a stream of the policy's own, seeded
+        at 0, so an evaluation is reproducible. Sampled decisions (training) do not search; ignored without
+        pre-assignment
+    :param decision_temperature: T of those samples
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -128,6 +135,8 @@ class TAMPolicy(BasePolicy):
         select_logit_scale: float | None = None,
         n_critics: int = 2,
         rounds: int = 1,
+        decision_samples: int = 1,
+        decision_temperature: float = 2.0,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -155,7 +164,13 @@ class TAMPolicy(BasePolicy):
         ):
             if value not in choices:
                 raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
-        for name, count in (("hidden_dim", hidden_dim), ("n_critics", n_critics), ("rounds", rounds)):
+        counts = (
+            ("hidden_dim", hidden_dim),
+            ("n_critics", n_critics),
+            ("rounds", rounds),
+            ("decision_samples", decision_samples),
+        )
+        for name, count in counts:
             if not (isinstance(count, int) and count >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {count!r}")
         self.hidden_dim = hidden_dim
@@ -173,13 +188,18 @@ class TAMPolicy(BasePolicy):
             logit_scale = RULE_LOGIT_SCALES[0] if ruled else 1.0
         if select_logit_scale is None:
             select_logit_scale = RULE_LOGIT_SCALES[1] if heuristic_init else 1.0
-        for name, scale in (("logit_scale", logit_scale), ("select_logit_scale", select_logit_scale)):
+        scales = {"logit_scale": logit_scale, "select_logit_scale": select_logit_scale}
+        scales["decision_temperature"] = decision_temperature
+        for name, scale in scales.items():
             if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
         self.logit_scale = float(logit_scale)
         self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
         self.rounds = rounds
+        self.decision_samples = decision_samples
+        self.decision_temperature = float(decision_temperature)
+        self._search_stream: th.Generator | None = None
         self.heuristic_init = heuristic_init
         self.rule_weights = dict(rule_weights or {})
         if self.rule_weights:
@@ -320,6 +340,8 @@ class TAMPolicy(BasePolicy):
                 select_logit_scale=self.select_logit_scale,
                 n_critics=self.n_critics,
                 rounds=self.rounds,
+                decision_samples=self.decision_samples,
+                decision_temperature=self.decision_temperature,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
@@ -399,7 +421,13 @@ class TAMPolicy(BasePolicy):
                 dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid)
             else:
                 dist = self.actor(view)
-            c = th.where(view.assignable, dist.get_actions(deterministic), -1)
+            if r == 0 and deterministic and not uniform and self.decision_samples > 1:
+                found = sampled_search(
+                    dist, self.selector.head, view, self.decision_samples, self.decision_temperature, self._stream(view)
+                )
+                c = found.candidates
+            else:
+                c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             st = self.select_round(view, c, deterministic, uniform)
             candidates = c.unsqueeze(1) == tasks
             kept = st.kept()
@@ -415,6 +443,13 @@ class TAMPolicy(BasePolicy):
                 break
         assert first is not None
         return first._replace(env_action=env_action)
+
+    def _stream(self, view: ObsView) -> th.Generator:
+        """The random stream of the decision-time search, on the observations' device, seeded at 0 when first used."""
+        device = view.pair_cost.device
+        if self._search_stream is None or self._search_stream.device != device:
+            self._search_stream = th.Generator(device=device).manual_seed(0)
+        return self._search_stream
 
     def _decide_pooled(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
         """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import torch as th
 from torch import nn
 
-from sb3_taskalloc.common.distributions import masked_pick, segment_sum
+from sb3_taskalloc.common.distributions import MaskedCategorical, masked_pick, segment_sum
 from sb3_taskalloc.common.torch_layers import NEG, ObsView, PointerHead, symlog
 
 #: A task counts as covered (internally) when every remaining demand is at most this (the env's tolerance is larger).
@@ -253,6 +253,52 @@ def decode_round(
         st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
         st.advance(picks, valid)
     return st
+
+
+def round_profit(head: PointerHead, view: ObsView, task_of: th.Tensor) -> th.Tensor:
+    """(B,) the internal profit Σ_j kept_j·(r_j − Σ pair costs of j's team) of the deterministic select stage on the
+    candidate sets ``task_of``: what the env credits when the teams commit (its commitment reward before decay)."""
+    st = decode_round(head, view, task_of, deterministic=True)
+    return (st.kept() * (view.reward - st.cost)).sum(-1)
+
+
+class SearchResult(NamedTuple):
+    candidates: th.Tensor  # (B, N) the best pre-assignment found (task per free entity, −1 otherwise)
+    profit: th.Tensor  # (B,) its step profit
+    base: th.Tensor  # (B,) the step profit of the argmax pre-assignment
+
+
+def sampled_search(
+    dist: MaskedCategorical,
+    head: PointerHead,
+    view: ObsView,
+    samples: int,
+    temperature: float,
+    generator: th.Generator | None = None,
+) -> SearchResult:
+    """The best of the argmax pre-assignment and ``samples`` − 1 joint pre-assignments drawn from π^(1/T), by the step's
+    profit (:func:`round_profit`), all decoded in one batched pass; the argmax wins ties (implementation detail 16).
+
+    :param dist: the pre-assign actor's distribution on ``view``
+    :param head: the pointer actor, decoding deterministically
+    :param samples: K, pre-assignments per state including the argmax (1: the argmax alone)
+    :param temperature: T of the samples (> 1: more entities leave their argmax)
+    :param generator: the random stream of the samples (None: torch's global one)
+    """
+    B, N = view.assignable.shape
+    free = view.assignable
+    c = th.where(free, dist.get_actions(True), -1)  # (B, N)
+    if samples <= 1:
+        base = round_profit(head, view, c)
+        return SearchResult(c, base, base)
+    probs = th.softmax(dist.logits / temperature, -1).reshape(B * N, -1)
+    drawn = th.multinomial(probs, samples - 1, replacement=True, generator=generator).view(B, N, samples - 1)
+    cs = th.cat([c.unsqueeze(1), th.where(free.unsqueeze(1), drawn.transpose(1, 2), -1)], 1)  # (B, K, N), the argmax first
+    rep = ObsView(*(x.repeat_interleave(samples, 0) for x in view))
+    profit = round_profit(head, rep, cs.reshape(B * samples, N)).view(B, samples)
+    best = profit.argmax(1)  # the first maximum: the argmax itself where nothing beats it
+    rows = th.arange(B, device=c.device)
+    return SearchResult(cs[rows, best], profit[rows, best], profit[:, 0])
 
 
 class TeacherForcedRound(NamedTuple):
