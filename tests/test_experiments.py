@@ -442,7 +442,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     text = run.run(progress=False).read_text()
     header = "| seed | untrained | trained | only actor learned | only pointer learned | Greedy | MILP | GeneticAlgorithm |"
     assert header in text and "trained > Greedy:" in text
-    assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | training s |" in text
+    assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | corr(ΔQ, ΔḠ) |" in text
+    assert "| ΔḠ ceiling | same sign | training s |" in text
     assert "a perfect critic would reach corr(Q, G)" in text
     data = json.loads((tmp_path / "EPT.json").read_text())
     assert [r["seed"] for r in data["seeds"]] == [0, 1]
@@ -454,6 +455,11 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
     shifted = run.zero_shot("EPT-TaskShift").read_text()  # the saved models, untrained on another env
     assert "| seed | untrained | trained | Greedy |" in shifted and "trained ≥ Greedy:" in shifted
+    searched = run.reevaluate(decision_samples=4)  # the same models deciding with a search of 4 pre-assignments
+    assert searched.name == "EPT_decision_samples_4.md"
+    assert "| seed | untrained | trained | Greedy | MILP |" in searched.read_text()
+    rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
+    assert [r["MILP"] for r in rows] == [r["MILP"] for r in data["seeds"]]  # the seeds' own held-out episodes
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.

@@ -61,6 +61,10 @@ def main(argv: list[str] | None = None) -> None:
     learn.add_argument(
         "--zero-shot", default=None, metavar="ENV", help="then run the trained models on ENV (e.g. RBF-EntityShift) untrained"
     )
+    learn.add_argument(
+        "--decision-samples", type=int, default=1, metavar="K",
+        help="then evaluate the trained and untrained models deciding with a search of K pre-assignments (and on --zero-shot)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
 
     import torch as th
@@ -81,13 +85,21 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
         run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                        out=args.out, validation_episodes=args.validation_episodes)  # fmt: skip
+        if args.decision_samples < 1:
+            parser.error(f"--decision-samples must be >= 1, got {args.decision_samples}")
         path = run.run(jobs=args.jobs)
         print(path.read_text())
         print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
-        if args.zero_shot:
-            shifted = run.zero_shot(args.zero_shot)
-            print(shifted.read_text())
-            print(f"wrote {shifted}, {shifted.with_suffix('.json')}")
+        evaluations: list[tuple[str | None, int]] = [(args.zero_shot, 1)] if args.zero_shot else []
+        if args.decision_samples > 1:
+            evaluations += [
+                (None, args.decision_samples),
+                *([(args.zero_shot, args.decision_samples)] if args.zero_shot else []),
+            ]
+        for shift, samples in evaluations:
+            again = run.reevaluate(shift, samples)
+            print(again.read_text())
+            print(f"wrote {again}, {again.with_suffix('.json')}")
         return
     if args.command == "diagnose":
         _diagnose(parser, args)

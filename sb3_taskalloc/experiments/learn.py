@@ -421,33 +421,45 @@ class LearnRun:
         """Each finished seed's trained model on another env without training (``shift``, e.g. ``"RBF-EntityShift"``),
         against the same policy untrained and Greedy on that env's held-out episodes of the seed; writes
         ``<out>/<env>_zero_shot_<shift>.md`` and ``.json``. :return: the Markdown path."""
+        return self.reevaluate(shift)
+
+    def reevaluate(self, shift: str | None = None, decision_samples: int = 1) -> Path:
+        """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
+        env (``shift``, zero-shot) or of the training env, deciding with decision-time search of ``decision_samples``
+        pre-assignments (:class:`~sb3_taskalloc.TAMPolicy`'s ``decision_samples``; 1: the argmax), against Greedy (and
+        the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>][_decision_samples_<K>].md``
+        and ``.json``. Training is untouched: its sampled decisions never search. :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
 
-        shift_id = f"TaskAlloc/{shift}-v0"
+        env_id = f"TaskAlloc/{shift}-v0" if shift else self.env_id
         rows: list[dict[str, Any]] = []
         for seed in range(self.seeds):
             path = self.seed_path(seed).with_suffix(".zip")
             if not path.exists():
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
             seeds = eval_seeds(seed, self.eval_episodes)
-            trained = TwoStageSAC.load(path, env=gym.make(shift_id), device="cpu")
-            untrained = TwoStageSAC("TAMPolicy", shift_id, seed=seed, device="cpu", policy_kwargs=trained.policy_kwargs)
-            rows.append(
-                {"seed": seed, "trained": episode_returns(trained, shift_id, seeds),
-                 "untrained": episode_returns(untrained, shift_id, seeds),
-                 "Greedy": episode_returns(b.GreedyAllocator(), shift_id, seeds)}
-            )  # fmt: skip
-        stem = Path(self.out) / f"{self.env}_zero_shot_{shift}"
-        atomic_write_text(
-            stem.with_suffix(".json"), json.dumps({"settings": self.describe(), "shift": shift_id, "seeds": rows})
-        )
-        columns = ("untrained", "trained", "Greedy")
+            trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
+            kwargs = {**trained.policy_kwargs, "decision_samples": decision_samples}
+            trained.policy.decision_samples = decision_samples
+            untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=kwargs)
+            row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
+                   "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
+            row.update({"Greedy": episode_returns(b.GreedyAllocator(), env_id, seeds)} if shift else self.baselines(seed))
+            rows.append(row)
+        searched = f"_decision_samples_{decision_samples}" if decision_samples > 1 else ""
+        stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
+        settings = {"settings": self.describe(), "env": env_id, "decision_samples": decision_samples, "seeds": rows}
+        atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
+        columns = ["untrained", "trained", "Greedy", *([] if shift else ["MILP"])]
         means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
+        how = "zero-shot" if shift else "held-out episodes"
+        how += f", decision-time search of {decision_samples} pre-assignments" if decision_samples > 1 else ""
+        flags = (f" --zero-shot {shift}" if shift else "") + (f" --decision-samples {decision_samples}" if searched else "")
         lines = [
-            f"# {shift_id}: zero-shot, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
+            f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
             "",
-            f"Command: `{self.command()} --zero-shot {shift}`",
+            f"Command: `{self.command()}{flags}`",
             "",
             "| seed | " + " | ".join(columns) + " |",
             "|---" * (len(columns) + 1) + "|",
@@ -455,6 +467,9 @@ class LearnRun:
             "| mean ± std | " + " | ".join(f"{means[c].mean():.1f} ± {means[c].std():.1f}" for c in columns) + " |",
             "",
             f"- trained ≥ Greedy: {int((means['trained'] >= means['Greedy']).sum())} of {len(rows)} seeds (target all)",
+            f"- trained > untrained: {int((means['trained'] > means['untrained']).sum())} of {len(rows)} seeds, "
+            f"{means['trained'].mean() / means['untrained'].mean():.3f} × (means)",
+            *([] if shift else [f"- trained / per-step MILP (means): {means['trained'].mean() / means['MILP'].mean():.3f}"]),
         ]
         return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
 
