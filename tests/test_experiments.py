@@ -442,8 +442,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     text = run.run(progress=False).read_text()
     header = "| seed | untrained | trained | only actor learned | only pointer learned | Greedy | MILP | GeneticAlgorithm |"
     assert header in text and "trained > Greedy:" in text
-    assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | corr(ΔQ, ΔḠ) |" in text
-    assert "| ΔḠ ceiling | same sign | training s |" in text
+    assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | pairs |" in text
+    assert "| pairs | corr(ΔQ, ΔḠ) | ΔḠ ceiling | same sign | training s |" in text
     assert "a perfect critic would reach corr(Q, G)" in text
     data = json.loads((tmp_path / "EPT.json").read_text())
     assert [r["seed"] for r in data["seeds"]] == [0, 1]

@@ -50,12 +50,13 @@ CRITIC_COLUMNS = {
     "return_ceiling": "ceiling",
     "free_corr_q": "corr(Q, free)",
     "free_corr_expected": "corr(Ḡ, free)",
+    "advantage_pairs": "pairs",
     "advantage_corr": "corr(ΔQ, ΔḠ)",
     "advantage_ceiling": "ΔḠ ceiling",
     "advantage_sign": "same sign",
 }
 CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
-CRITIC_ADVANTAGE = ["advantage_corr", "advantage_ceiling", "advantage_sign"]
+CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_corr", "advantage_ceiling", "advantage_sign"]
 
 
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
@@ -362,10 +363,10 @@ class LearnRun:
         ]
         for k, r in enumerate(records):
             cells = " | ".join(f"{means[c][k]:.1f}" for c in shown)
-            figures = " | ".join(f"{r[c]:.2f}" for c in critic)
+            figures = " | ".join(f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic)
             lines.append(f"| {r['seed']} | {cells} | {figures} | {r['train_seconds']:.0f} |")
         summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
-        critic_means = " | ".join(f"{np.mean([r[c] for r in records]):.2f}" for c in critic)
+        critic_means = " | ".join(f"{np.mean([r[c] for r in records]):.{1 if c == 'advantage_pairs' else 2}f}" for c in critic)
         lines.append(f"| mean ± std | {summary} | {critic_means} | |")
         lines += ["", *self.targets(means, records)]
         return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
@@ -398,7 +399,8 @@ class LearnRun:
             ),
             *(
                 [
-                    f"- the critic between two sampled decisions of a state (what the actor follows): corr(ΔQ, ΔḠ) "
+                    f"- the critic between two sampled decisions of a state (what the actor follows; "
+                    f"{sum(r['advantage_pairs'] for r in records)} pairs where they differ): corr(ΔQ, ΔḠ) "
                     f"{np.mean([r['advantage_corr'] for r in records]):.2f} against a ceiling of "
                     f"{np.mean([r['advantage_ceiling'] for r in records]):.2f} (the noise of the paired branches); ΔQ "
                     f"has the sign of ΔḠ in {100 * np.mean([r['advantage_sign'] for r in records]):.0f} % of the pairs",
