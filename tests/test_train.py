@@ -8,6 +8,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import SubprocVecEnv
 from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
@@ -643,3 +645,67 @@ def test_preassign_search_loss_distils_the_best_sample():
     for bad in ({"search_coef": -1.0}, {"search_temperature": 0.0}, {"search_samples": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
+
+
+def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():
+    """``counterfactual_rate`` (implementation detail 17): at a branched step each env's copy takes a second sampled
+    decision from the same state and the same random state, so where both decisions agree the two transitions are
+    identical, and where they differ only the decision explains the difference."""
+    model = TwoStageSAC(
+        "TAMPolicy", make_vec_env("TaskAlloc/EPT-v0", n_envs=2, seed=0), counterfactual_rate=1.0, learning_starts=1000,
+        seed=0, device="cpu",
+    )  # fmt: skip
+    model.learn(60)
+    branched, replayed = model.counterfactual_buffer, model.replay_buffer
+    assert branched is not None
+    n = replayed.size()
+    assert branched.size() == n == 30  # rate 1: every step of both envs branches
+    for key, stored in replayed.observations.items():
+        np.testing.assert_array_equal(branched.observations[key][:n], stored[:n])  # the same states
+    same = (branched.candidates[:n] == replayed.candidates[:n]).all(axis=(2, 3))
+    same &= (branched.pick_rank[:n] == replayed.pick_rank[:n]).all(axis=(2, 3))
+    assert 0 < same.sum() < same.size  # some decisions agree, some differ
+    np.testing.assert_array_equal(branched.rewards[:n][same], replayed.rewards[:n][same])
+    np.testing.assert_array_equal(branched.dones[:n][same], replayed.dones[:n][same])
+    for key, stored in replayed.next_observations.items():
+        np.testing.assert_array_equal(branched.next_observations[key][:n][same], stored[:n][same])
+    assert not np.array_equal(branched.rewards[:n][~same], replayed.rewards[:n][~same])
+
+
+def _almighty() -> gym.Env:
+    import envs  # noqa: F401  (a subprocess registers the ids itself)
+
+    return gym.make("TaskAlloc/Almighty-v0")
+
+
+def test_counterfactual_rows_follow_the_replayed_ones():
+    """The stage-1 minibatch is the replayed rows then ``counterfactual_batch_size`` branched ones, with γ as the
+    discount of the one-step rows beside n-step rows; training runs on it. Bad settings are named."""
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=8, n_steps=2,
+        learning_starts=20, batch_size=16, seed=0, device="cpu",
+    )  # fmt: skip
+    model.learn(40)
+    assert model.counterfactual_buffer is not None and 0 < model.counterfactual_buffer.size() < 40
+    assert "train/critic_loss" in model.logger.name_to_value
+    th.manual_seed(0)
+    np.random.seed(0)
+    data = model._sample(16)
+    np.random.seed(0)
+    replayed = model.replay_buffer.sample(16)
+    assert data.rewards.shape == (24, 1) and data.candidates.shape[0] == 24
+    th.testing.assert_close(data.rewards[:16], replayed.rewards)
+    assert replayed.discounts is not None and data.discounts is not None
+    th.testing.assert_close(data.discounts[:16], replayed.discounts)
+    th.testing.assert_close(data.discounts[16:], th.full((8, 1), model.gamma))
+    for rate in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="counterfactual_rate"):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=rate)
+    with pytest.raises(ValueError, match="counterfactual_batch_size"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=0)
+    venv = SubprocVecEnv([_almighty])
+    try:
+        with pytest.raises(ValueError, match="DummyVecEnv"):
+            TwoStageSAC("TAMPolicy", venv, counterfactual_rate=0.5)
+    finally:
+        venv.close()

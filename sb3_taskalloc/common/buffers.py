@@ -28,6 +28,33 @@ class TwoStageReplayBufferSamples(NamedTuple):
     discounts: th.Tensor | None = None  # (B, 1) γ^k of the bootstrap after k ≤ n steps (n-step returns), else None
 
 
+def concat_samples(
+    first: TwoStageReplayBufferSamples, second: TwoStageReplayBufferSamples, gamma: float
+) -> TwoStageReplayBufferSamples:
+    """The rows of ``first`` followed by those of ``second`` (the same spaces). Where one of them has no n-step
+    discounts (one-step transitions), its rows get γ, the discount of one step.
+
+    :param gamma: γ of the one-step rows
+    """
+
+    def cat(a: th.Tensor, b: th.Tensor) -> th.Tensor:
+        return th.cat([a, b], 0)
+
+    def discounts(samples: TwoStageReplayBufferSamples) -> th.Tensor:
+        return samples.rewards.new_full(samples.rewards.shape, gamma) if samples.discounts is None else samples.discounts
+
+    return TwoStageReplayBufferSamples(
+        observations={key: cat(v, second.observations[key]) for key, v in first.observations.items()},
+        actions=cat(first.actions, second.actions),
+        next_observations={key: cat(v, second.next_observations[key]) for key, v in first.next_observations.items()},
+        dones=cat(first.dones, second.dones),
+        rewards=cat(first.rewards, second.rewards),
+        candidates=cat(first.candidates, second.candidates),
+        pick_rank=cat(first.pick_rank, second.pick_rank),
+        discounts=None if first.discounts is None and second.discounts is None else cat(discounts(first), discounts(second)),
+    )
+
+
 def pack_decision(env_action: np.ndarray, candidates: np.ndarray, pick_rank: np.ndarray) -> np.ndarray:
     """Pack (n_envs, N) env actions, (n_envs, M, N) candidates and pick ranks into one (n_envs, N + 2·M·N) array,
     the ``buffer_action`` that SB3's ``collect_rollouts`` hands to :meth:`TwoStageReplayBuffer.add`."""

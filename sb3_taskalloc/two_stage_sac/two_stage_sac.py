@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import io
 import math
 import pathlib
@@ -13,14 +14,16 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnvWrapper
 
 import sb3_taskalloc.two_stage_sac.losses as losses
-from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, pack_decision
+from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, concat_samples, pack_decision
 from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
@@ -114,6 +117,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param search_samples: pre-assignments per state of that term, the argmax included
     :param search_temperature: temperature of that term's samples
     :param search_batch_size: rows of each minibatch used by that term (each costs ``search_samples`` decodes)
+    :param counterfactual_rate: share of the collection steps at which every env also steps a copy of itself with a
+        second decision sampled at the same state (implementation detail 17, not in the paper; 0: off; the envs must
+        live in this process, as in a ``DummyVecEnv``): the copy shares the env's random state, so both transitions
+        differ only by the decision, and the stage-1 critics learn from both
+    :param counterfactual_batch_size: rows of those branched transitions added to each stage-1 minibatch
     :param target_update_interval: target network update interval (gradient steps)
     :param select_batch_size: rows of each minibatch used by the select stage (each row holds up to M × team-size
         transitions, so a few rows suffice; the decoding loop is the costly part of a gradient step)
@@ -167,6 +175,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         search_samples: int = 32,
         search_temperature: float = 2.0,
         search_batch_size: int = 16,
+        counterfactual_rate: float = 0.0,
+        counterfactual_batch_size: int = 32,
         target_update_interval: int = 1,
         select_batch_size: int = 16,
         stats_window_size: int = 100,
@@ -211,6 +221,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "profit_batch_size": profit_batch_size,
             "search_samples": search_samples,
             "search_batch_size": search_batch_size,
+            "counterfactual_batch_size": counterfactual_batch_size,
         }
         for name, count in counts.items():
             if not (isinstance(count, int) and count >= 1):
@@ -251,6 +262,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.search_samples = search_samples
         self.search_temperature = float(search_temperature)
         self.search_batch_size = search_batch_size
+        if not (isinstance(counterfactual_rate, int | float) and 0.0 <= counterfactual_rate <= 1.0):
+            raise ValueError(f"counterfactual_rate must be a share in [0, 1], got {counterfactual_rate!r}")
+        self.counterfactual_rate = float(counterfactual_rate)
+        self.counterfactual_batch_size = counterfactual_batch_size
+        self.counterfactual_buffer: TwoStageReplayBuffer | None = None
         self.prior_coef = float(prior_coef)
         self.select_prior_coef = float(select_prior_coef)
         self.target_update_interval = target_update_interval
@@ -274,6 +290,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom", category=UserWarning)
             super()._setup_model()
         self._create_aliases()
+        self.counterfactual_buffer = self._make_counterfactual_buffer()
         self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
         self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = self._entropy_coefficient(
             self.select_ent_coef, "select_ent_coef"
@@ -307,6 +324,70 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.select_critic = self.policy.select_critic
         self.select_critic_target = self.policy.select_critic_target
 
+    def _make_counterfactual_buffer(self) -> TwoStageReplayBuffer | None:
+        """The buffer of the branched transitions (implementation detail 17): one-step transitions, sized to the share of
+        the collection steps that branch; None when ``counterfactual_rate`` is 0."""
+        if self.counterfactual_rate == 0.0 or self.observation_space is None:
+            return None
+        if self.env is not None:
+            self._branchable_envs()  # refuse envs it cannot copy now, not at the first branched step
+        return TwoStageReplayBuffer(
+            max(1, math.ceil(self.buffer_size * self.counterfactual_rate)),
+            self.observation_space,  # type: ignore[arg-type]
+            self.action_space,
+            device=self.device,
+            n_envs=self.n_envs,
+        )
+
+    def _branchable_envs(self) -> list[Any]:
+        """The envs of the training VecEnv as objects of this process, below any ``Monitor`` (which writes its episodes
+        to a file and is bookkeeping only), so that a deep copy steps like the env itself."""
+        venv: Any = self.env
+        while isinstance(venv, VecEnvWrapper):
+            venv = venv.venv
+        if not isinstance(venv, DummyVecEnv):
+            raise ValueError(
+                f"counterfactual_rate > 0 copies the training envs, which needs them in this process (DummyVecEnv, the "
+                f"default of make_vec_env); got {type(venv).__name__}"
+            )
+        envs = []
+        for env in venv.envs:
+            while isinstance(env, Monitor):
+                env = env.env
+            envs.append(env)
+        return envs
+
+    def _learned_rewards(self, reward: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
+        """The reward the stage-1 critics learn: the env's, or its commitment reward with ``reward_timing="commitment"``
+        (implementation detail 2)."""
+        if self.reward_timing != "commitment":
+            return reward
+        try:
+            return np.array([info["commitment_reward"] for info in infos], dtype=np.float32)
+        except KeyError:
+            raise ValueError(
+                "reward_timing='commitment' needs info['commitment_reward'] from the env (the TaskAlloc envs provide "
+                "it); use reward_timing='completion' with other envs"
+            ) from None
+
+    def _branch(self, view: ObsView, uniform: bool) -> None:
+        """Implementation detail 17: a second decision c′ sampled at the current states, taken by deep copies of the
+        envs (which share their random state, so c and c′ meet the same arrivals and noise), stored as one-step
+        transitions in :attr:`counterfactual_buffer`. The critics then see two decisions of one state: Q(s, c) − Q(s, c′)
+        is what the actor's gradient follows, and a single sampled decision per state rarely shows it."""
+        assert self.counterfactual_buffer is not None and self._last_obs is not None
+        other = self.policy.decide(view, deterministic=False, uniform=uniform)
+        action = other.env_action.cpu().numpy()
+        steps = [copy.deepcopy(env).step(a) for env, a in zip(self._branchable_envs(), action, strict=True)]
+        next_obs = {key: np.stack([s[0][key] for s in steps]) for key in steps[0][0]}
+        terminated = np.array([s[2] for s in steps])
+        truncated = np.array([s[3] for s in steps])
+        ends = zip(terminated, truncated, strict=True)
+        infos = [{**s[4], "TimeLimit.truncated": bool(tr and not te)} for s, (te, tr) in zip(steps, ends, strict=True)]
+        reward = self._learned_rewards(np.array([s[1] for s in steps], dtype=np.float32), infos)
+        packed = pack_decision(action, other.candidates.cpu().numpy(), other.pick_rank.cpu().numpy())
+        self.counterfactual_buffer.add(self._last_obs, next_obs, packed, reward, terminated | truncated, infos)  # type: ignore[arg-type]
+
     # ------------------------------------------------------------------ acting
 
     def _sample_action(
@@ -321,6 +402,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         with th.inference_mode():
             view = self.policy.parse(obs_as_tensor(self._last_obs, self.device))  # type: ignore[arg-type]
             decision = self.policy.decide(view, deterministic=False, uniform=uniform)
+            if self.counterfactual_buffer is not None and np.random.random() < self.counterfactual_rate:
+                self._branch(view, uniform)
         action = decision.env_action.cpu().numpy()
         buffer_action = pack_decision(action, decision.candidates.cpu().numpy(), decision.pick_rank.cpu().numpy())
         return action, buffer_action
@@ -336,17 +419,19 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     ) -> None:
         """SB3's storage, with the commitment reward in place of the env reward when ``reward_timing="commitment"``
         (the episode statistics keep the env reward)."""
-        if self.reward_timing == "commitment":
-            try:
-                reward = np.array([info["commitment_reward"] for info in infos], dtype=np.float32)
-            except KeyError:
-                raise ValueError(
-                    "reward_timing='commitment' needs info['commitment_reward'] from the env (the TaskAlloc envs provide "
-                    "it); use reward_timing='completion' with other envs"
-                ) from None
+        reward = self._learned_rewards(reward, infos)
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
 
     # ------------------------------------------------------------------ training
+
+    def _sample(self, batch_size: int) -> TwoStageReplayBufferSamples:
+        """A minibatch of replayed transitions, followed by ``counterfactual_batch_size`` branched ones when there are any
+        (implementation detail 17): the select stage and the terms computed on the first rows keep the replayed ones."""
+        replay_data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
+        if self.counterfactual_buffer is None or self.counterfactual_buffer.size() == 0:
+            return replay_data
+        branched: TwoStageReplayBufferSamples = self.counterfactual_buffer.sample(self.counterfactual_batch_size)  # type: ignore[assignment]
+        return concat_samples(replay_data, branched, self.gamma)
 
     @staticmethod
     def _alpha(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
@@ -362,7 +447,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         logs: dict[str, list[float]] = defaultdict(list)
 
         for gradient_step in range(gradient_steps):
-            replay_data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
+            replay_data = self._sample(batch_size)
             obs = self.policy.parse(replay_data.observations)
             # During the critic warm-up (implementation detail 11) only the critics learn: the actors and the
             # temperatures keep their initial values.
@@ -527,6 +612,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 **(self.replay_buffer_kwargs or {}),
             )
         super().set_env(env, force_reset)
+        buffer = self.counterfactual_buffer
+        if buffer is None or buffer.observation_space != new_obs or buffer.n_envs != env.num_envs:
+            self.counterfactual_buffer = self._make_counterfactual_buffer()
+        elif self.counterfactual_rate > 0:
+            self._branchable_envs()
 
     @classmethod
     def load(  # type: ignore[override]
@@ -575,6 +665,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "selector",
             "select_critic",
             "select_critic_target",
+            "counterfactual_buffer",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
