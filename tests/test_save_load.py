@@ -6,6 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_taskalloc import TwoStageSAC
 
@@ -41,6 +42,23 @@ def test_save_load_identical_predict(tmp_path, kwargs):
     steps = loaded.num_timesteps
     loaded.learn(6, reset_num_timesteps=False)
     assert loaded.num_timesteps == steps + 6
+
+
+def test_counterfactual_rate_save_load_resume(tmp_path):
+    """The setting comes back; the branched transitions, like the replay buffer, are not saved: the loaded model starts
+    an empty buffer of them for its env count and fills it when training resumes."""
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=1.0, counterfactual_batch_size=4, learning_starts=6,
+        batch_size=8, seed=0, policy_kwargs=SMALL,
+    )  # fmt: skip
+    model.learn(10)
+    model.save(tmp_path / "model")
+    loaded = TwoStageSAC.load(tmp_path / "model", env=make_vec_env("TaskAlloc/Almighty-v0", n_envs=2, seed=1))
+    assert (loaded.counterfactual_rate, loaded.counterfactual_batch_size) == (1.0, 4)
+    assert loaded.counterfactual_buffer is not None and loaded.counterfactual_buffer.size() == 0
+    assert loaded.counterfactual_buffer.n_envs == 2
+    loaded.learn(10, reset_num_timesteps=False)
+    assert loaded.counterfactual_buffer.size() == 5  # 10 steps of 2 envs, every step branched
 
 
 def test_replay_buffer_save_load(tmp_path):

@@ -92,6 +92,14 @@ published code):
    changes (a team assembled elsewhere) that no single move improves, which is where the per-step MILP gains over the
    rule. As the argmax improves, so do the samples around it (a policy improvement by search, distilled). The critics'
    term keeps what comes after the step.
+17. Counterfactual transitions (``counterfactual_rate`` ρ, not in the paper): at a share ρ of the collection steps every
+   env is also deep-copied and the copy takes a second decision c′ sampled at the same state. The copy shares the env's
+   random state (arrivals, demand noise), so the two transitions differ by the decision alone; c′'s goes to a buffer of
+   its own, and ``counterfactual_batch_size`` of them join each stage-1 minibatch (critic, actor and temperature
+   losses) after the replayed rows, as one-step transitions. The actor's gradient follows the critic's differences
+   Q(s, c) − Q(s, c′) between decisions of one state, and one sampled decision per state shows the critic few of them:
+   its state values track the return while its ranking of the decisions of a state stays near chance (``diagnose``'s
+   decision pairs). The envs must live in the training process (``DummyVecEnv``).
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
