@@ -58,7 +58,7 @@ def test_counterfactual_rate_save_load_resume(tmp_path):
     assert loaded.counterfactual_buffer is not None and loaded.counterfactual_buffer.size() == 0
     assert loaded.counterfactual_buffer.n_envs == 2
     loaded.learn(10, reset_num_timesteps=False)
-    assert loaded.counterfactual_buffer.size() == 5  # 10 steps of 2 envs, every step branched
+    assert loaded.counterfactual_buffer.size() == 10  # 10 steps of 2 envs: 5 rows, every step branched
 
 
 def test_replay_buffer_save_load(tmp_path):

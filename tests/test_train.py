@@ -659,7 +659,7 @@ def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_de
     branched, replayed = model.counterfactual_buffer, model.replay_buffer
     assert branched is not None
     n = replayed.size()
-    assert branched.size() == n == 30  # rate 1: every step of both envs branches
+    assert n == 30 and branched.size() == 2 * n  # rate 1: every step of both envs branches, row for row
     for key, stored in replayed.observations.items():
         np.testing.assert_array_equal(branched.observations[key][:n], stored[:n])  # the same states
     same = (branched.candidates[:n] == replayed.candidates[:n]).all(axis=(2, 3))
@@ -679,28 +679,39 @@ def _almighty() -> gym.Env:
 
 
 def test_counterfactual_rows_follow_the_replayed_ones():
-    """The stage-1 minibatch is the replayed rows then ``counterfactual_batch_size`` branched ones, with γ as the
-    discount of the one-step rows beside n-step rows; training runs on it. Bad settings are named."""
+    """With the paired term the stage-1 minibatch is the replayed rows, then K replayed rows and the K branched rows of
+    the same states, with γ as the discount of the one-step rows beside n-step rows; training runs on it and logs the
+    term. Without it the K branched rows alone follow. A row the replay buffer overwrites without a branch loses its
+    pair. Bad settings are named."""
     model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=8, n_steps=2,
-        learning_starts=20, batch_size=16, seed=0, device="cpu",
+        "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=8, counterfactual_coef=1.0,
+        n_steps=2, learning_starts=20, batch_size=16, seed=0, device="cpu",
     )  # fmt: skip
     model.learn(40)
-    assert model.counterfactual_buffer is not None and 0 < model.counterfactual_buffer.size() < 40
-    assert "train/critic_loss" in model.logger.name_to_value
-    th.manual_seed(0)
-    np.random.seed(0)
-    data = model._sample(16)
-    np.random.seed(0)
-    replayed = model.replay_buffer.sample(16)
-    assert data.rewards.shape == (24, 1) and data.candidates.shape[0] == 24
-    th.testing.assert_close(data.rewards[:16], replayed.rewards)
-    assert replayed.discounts is not None and data.discounts is not None
-    th.testing.assert_close(data.discounts[:16], replayed.discounts)
-    th.testing.assert_close(data.discounts[16:], th.full((8, 1), model.gamma))
+    buffer = model.counterfactual_buffer
+    assert buffer is not None and 0 < buffer.size() < 40
+    assert "train/paired_critic_loss" in model.logger.name_to_value
+    data, n_pairs = model._sample(16)
+    assert n_pairs == 8 and data.rewards.shape == (32, 1) and data.candidates.shape[0] == 32
+    for value in data.observations.values():
+        th.testing.assert_close(value[16:24], value[24:32])  # the pairs share their states
+    assert data.discounts is not None
+    th.testing.assert_close(data.discounts[24:], th.full((8, 1), model.gamma))
+    assert bool((data.discounts[:24] <= model.gamma).all())
+    model.counterfactual_coef = 0.0
+    data, n_pairs = model._sample(16)
+    assert n_pairs == 0 and data.rewards.shape == (24, 1)
+    rows = np.flatnonzero(buffer.branched[:, 0])
+    model._branched = False
+    model.replay_buffer.pos = int(rows[0])
+    model._store_transition(model.replay_buffer, np.zeros((1, 25 + 2 * 9 * 25), np.int64), model._last_obs, np.zeros(1),
+                            np.zeros(1, bool), [{"commitment_reward": 0.0}])  # fmt: skip
+    assert not buffer.branched[rows[0], 0] and buffer.size() == len(rows) - 1
     for rate in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="counterfactual_rate"):
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=rate)
+    with pytest.raises(ValueError, match="counterfactual_coef"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_coef=-1.0)
     with pytest.raises(ValueError, match="counterfactual_batch_size"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=0)
     venv = SubprocVecEnv([_almighty])
@@ -709,3 +720,19 @@ def test_counterfactual_rows_follow_the_replayed_ones():
             TwoStageSAC("TAMPolicy", venv, counterfactual_rate=0.5)
     finally:
         venv.close()
+
+
+def test_paired_critic_loss_fits_the_difference():
+    """½ Σ_k mean((Q^k(s, c) − Q^k(s, c′)) − (y − y′))² on the pair rows only; a value shared by both rows of a pair (the
+    state's) does not enter it."""
+    g = th.Generator().manual_seed(0)
+    q1, q2, y = (th.randn(10, generator=g) for _ in range(3))
+    loss = losses.paired_critic_loss((q1, q2), y, start=4, n_pairs=3)
+    gap = y[4:7] - y[7:10]
+    expected = 0.5 * (((q1[4:7] - q1[7:10]) - gap) ** 2).mean() + 0.5 * (((q2[4:7] - q2[7:10]) - gap) ** 2).mean()
+    th.testing.assert_close(loss, expected)
+    shift = th.zeros(10)
+    shift[4:7] = shift[7:10] = th.randn(3, generator=g) * 100
+    th.testing.assert_close(losses.paired_critic_loss((q1 + shift, q2 + shift), y, 4, 3), loss)
+    q1[:4] += 5.0  # the replayed rows before the pairs
+    th.testing.assert_close(losses.paired_critic_loss((q1, q2), y, 4, 3), loss)

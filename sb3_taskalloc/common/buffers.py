@@ -134,9 +134,11 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         super().add(obs, next_obs, env_action, reward, done, infos)
 
     def _get_samples(  # type: ignore[override]
-        self, batch_inds: np.ndarray, env: VecNormalize | None = None
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None, env_indices: np.ndarray | None = None
     ) -> TwoStageReplayBufferSamples:
-        env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
+        """The transitions at rows ``batch_inds`` of envs ``env_indices`` (random envs by default, as SB3's)."""
+        if env_indices is None:
+            env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
         obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.observations.items()}
         if self.n_steps == 1:
             last, discounts = batch_inds, None
@@ -178,3 +180,51 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         total += self.actions.nbytes + self.candidates.nbytes + self.pick_rank.nbytes
         total += self.rewards.nbytes + self.dones.nbytes + self.timeouts.nbytes
         return total // (self.buffer_size * self.n_envs)
+
+
+class CounterfactualBuffer(TwoStageReplayBuffer):
+    """The branched transitions of TwoStageSAC (implementation detail 17), one-step, aligned with its replay buffer: row
+    ``p`` of env ``e`` holds the transition of the second decision taken at the state of the replay buffer's row ``p``
+    of env ``e``, where that step branched. A row the replay buffer overwrites without a branch is cleared, so a pair
+    always shares its state.
+
+    :param buffer_size: the replay buffer's size (the same rows)
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.branched = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
+
+    def add_at(
+        self,
+        row: int,
+        obs: dict[str, np.ndarray],
+        next_obs: dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """Store the branched transitions of every env at row ``row`` (the replay buffer's next row)."""
+        self.pos = row
+        self.add(obs, next_obs, action, reward, done, infos)
+        self.branched[row] = True
+
+    def clear(self, row: int) -> None:
+        """Row ``row`` of the replay buffer is overwritten by a step that did not branch."""
+        self.branched[row] = False
+
+    def size(self) -> int:
+        """The number of branched transitions held."""
+        return int(self.branched.sum())
+
+    def sample_pairs(
+        self, batch_size: int, replay_buffer: TwoStageReplayBuffer
+    ) -> tuple[TwoStageReplayBufferSamples, TwoStageReplayBufferSamples]:
+        """``batch_size`` random branched transitions and the replayed transitions of the same states, row for row."""
+        rows, envs = np.nonzero(self.branched)
+        pick = np.random.randint(0, len(rows), size=batch_size)
+        return (
+            replay_buffer._get_samples(rows[pick], env_indices=envs[pick]),
+            self._get_samples(rows[pick], env_indices=envs[pick]),
+        )

@@ -99,7 +99,11 @@ published code):
    losses) after the replayed rows, as one-step transitions. The actor's gradient follows the critic's differences
    Q(s, c) − Q(s, c′) between decisions of one state, and one sampled decision per state shows the critic few of them:
    its state values track the return while its ranking of the decisions of a state stays near chance (``diagnose``'s
-   decision pairs). The envs must live in the training process (``DummyVecEnv``).
+   decision pairs). With ``counterfactual_coef`` λ_c > 0 each branched transition comes with the replayed one of its
+   state (the branched buffer is kept row for row beside the replay buffer) and the critic loss adds
+   λ_c·½ Σ_k mean((Q^k(s, c) − Q^k(s, c′)) − (y − y′))²: the state's value cancels from the difference, and so does
+   most of the targets' noise, since both transitions met the same random draws. The envs must live in the training
+   process (``DummyVecEnv``).
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

@@ -51,6 +51,7 @@ def state_entropy(dist: MaskedCategorical, view: ObsView, per_entity: bool = Fal
 class PreAssignCriticLoss(NamedTuple):
     loss: th.Tensor  # ½ Σ_k MSE(Q^k_tot(s, c), y)
     target_q: th.Tensor  # (B,) y
+    current: tuple[th.Tensor, ...]  # (B,) Q^k_tot(s, c) of each critic k
     contexts: list[CriticContext]  # the online critics' action-independent parts on s (reused by the actor loss)
 
 
@@ -86,7 +87,21 @@ def preassign_critic_loss(
     contexts = critic.contexts(view)
     current = critic.mix(contexts, assign)
     loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
-    return PreAssignCriticLoss(loss, target_q, contexts)  # type: ignore[arg-type]
+    return PreAssignCriticLoss(loss, target_q, tuple(current), contexts)  # type: ignore[arg-type]
+
+
+def paired_critic_loss(current: tuple[th.Tensor, ...], target_q: th.Tensor, start: int, n_pairs: int) -> th.Tensor:
+    """The paired term of the stage-1 critic loss on counterfactual pairs (implementation detail 17): rows
+    ``start`` … ``start + n_pairs`` − 1 hold replayed transitions (s, c) and the next ``n_pairs`` rows the branched
+    transitions (s, c′) of the same states; the loss is ½ Σ_k mean((Q^k(s, c) − Q^k(s, c′)) − (y − y′))². Both
+    transitions share the env's random state, so y − y′ carries little of the noise of each target, and the state's
+    value, which dominates each row's squared error, cancels: the term fits what the actor follows.
+
+    :param current: (B,) Q^k_tot of each critic on the minibatch; :param target_q: (B,) the targets y
+    """
+    first, second = slice(start, start + n_pairs), slice(start + n_pairs, start + 2 * n_pairs)
+    gap = target_q[first] - target_q[second]
+    return 0.5 * sum(F.mse_loss(q[first] - q[second], gap) for q in current)  # type: ignore[return-value]
 
 
 class EntropyTerms(NamedTuple):

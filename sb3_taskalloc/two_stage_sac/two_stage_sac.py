@@ -23,7 +23,13 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnvWrapper
 
 import sb3_taskalloc.two_stage_sac.losses as losses
-from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, TwoStageReplayBufferSamples, concat_samples, pack_decision
+from sb3_taskalloc.common.buffers import (
+    CounterfactualBuffer,
+    TwoStageReplayBuffer,
+    TwoStageReplayBufferSamples,
+    concat_samples,
+    pack_decision,
+)
 from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
@@ -121,7 +127,10 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         second decision sampled at the same state (implementation detail 17, not in the paper; 0: off; the envs must
         live in this process, as in a ``DummyVecEnv``): the copy shares the env's random state, so both transitions
         differ only by the decision, and the stage-1 critics learn from both
-    :param counterfactual_batch_size: rows of those branched transitions added to each stage-1 minibatch
+    :param counterfactual_batch_size: branched transitions added to each stage-1 minibatch
+    :param counterfactual_coef: weight of a paired term of the stage-1 critic loss: each branched transition comes with
+        the replayed one of its state, and the difference of the critic's values is fitted to the difference of their
+        targets; 0: the branched transitions alone join the minibatch, in the ordinary loss
     :param target_update_interval: target network update interval (gradient steps)
     :param select_batch_size: rows of each minibatch used by the select stage (each row holds up to M × team-size
         transitions, so a few rows suffice; the decoding loop is the costly part of a gradient step)
@@ -177,6 +186,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         search_batch_size: int = 16,
         counterfactual_rate: float = 0.0,
         counterfactual_batch_size: int = 32,
+        counterfactual_coef: float = 0.0,
         target_update_interval: int = 1,
         select_batch_size: int = 16,
         stats_window_size: int = 100,
@@ -266,7 +276,13 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             raise ValueError(f"counterfactual_rate must be a share in [0, 1], got {counterfactual_rate!r}")
         self.counterfactual_rate = float(counterfactual_rate)
         self.counterfactual_batch_size = counterfactual_batch_size
-        self.counterfactual_buffer: TwoStageReplayBuffer | None = None
+        if not (
+            isinstance(counterfactual_coef, int | float) and math.isfinite(counterfactual_coef) and counterfactual_coef >= 0
+        ):
+            raise ValueError(f"counterfactual_coef must be a finite number >= 0, got {counterfactual_coef!r}")
+        self.counterfactual_coef = float(counterfactual_coef)
+        self.counterfactual_buffer: CounterfactualBuffer | None = None
+        self._branched = False
         self.prior_coef = float(prior_coef)
         self.select_prior_coef = float(select_prior_coef)
         self.target_update_interval = target_update_interval
@@ -324,15 +340,15 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.select_critic = self.policy.select_critic
         self.select_critic_target = self.policy.select_critic_target
 
-    def _make_counterfactual_buffer(self) -> TwoStageReplayBuffer | None:
-        """The buffer of the branched transitions (implementation detail 17): one-step transitions, sized to the share of
-        the collection steps that branch; None when ``counterfactual_rate`` is 0."""
+    def _make_counterfactual_buffer(self) -> CounterfactualBuffer | None:
+        """The buffer of the branched transitions (implementation detail 17), one-step, row for row beside the replay
+        buffer; None when ``counterfactual_rate`` is 0."""
         if self.counterfactual_rate == 0.0 or self.observation_space is None:
             return None
         if self.env is not None:
             self._branchable_envs()  # refuse envs it cannot copy now, not at the first branched step
-        return TwoStageReplayBuffer(
-            max(1, math.ceil(self.buffer_size * self.counterfactual_rate)),
+        return CounterfactualBuffer(
+            self.buffer_size,
             self.observation_space,  # type: ignore[arg-type]
             self.action_space,
             device=self.device,
@@ -386,7 +402,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         infos = [{**s[4], "TimeLimit.truncated": bool(tr and not te)} for s, (te, tr) in zip(steps, ends, strict=True)]
         reward = self._learned_rewards(np.array([s[1] for s in steps], dtype=np.float32), infos)
         packed = pack_decision(action, other.candidates.cpu().numpy(), other.pick_rank.cpu().numpy())
-        self.counterfactual_buffer.add(self._last_obs, next_obs, packed, reward, terminated | truncated, infos)  # type: ignore[arg-type]
+        row = self.replay_buffer.pos  # where the replayed transition of these states goes next
+        self.counterfactual_buffer.add_at(row, self._last_obs, next_obs, packed, reward, terminated | truncated, infos)  # type: ignore[arg-type]
+        self._branched = True
 
     # ------------------------------------------------------------------ acting
 
@@ -420,18 +438,40 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         """SB3's storage, with the commitment reward in place of the env reward when ``reward_timing="commitment"``
         (the episode statistics keep the env reward)."""
         reward = self._learned_rewards(reward, infos)
+        if self.counterfactual_buffer is not None and isinstance(replay_buffer, TwoStageReplayBuffer):
+            if not self._branched:
+                self.counterfactual_buffer.clear(replay_buffer.pos)
+            self._branched = False
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
 
     # ------------------------------------------------------------------ training
 
-    def _sample(self, batch_size: int) -> TwoStageReplayBufferSamples:
-        """A minibatch of replayed transitions, followed by ``counterfactual_batch_size`` branched ones when there are any
-        (implementation detail 17): the select stage and the terms computed on the first rows keep the replayed ones."""
+    def _sample(self, batch_size: int) -> tuple[TwoStageReplayBufferSamples, int]:
+        """A minibatch of ``batch_size`` replayed transitions, followed, when there are branched transitions
+        (implementation detail 17), by K = ``counterfactual_batch_size`` of them; with the paired term
+        (``counterfactual_coef`` > 0) the K replayed transitions of their states come first, row for row. The select
+        stage and the terms computed on the first rows keep the replayed ones.
+
+        :return: the minibatch and the number of pairs (0 without the paired term)
+        """
         replay_data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
         if self.counterfactual_buffer is None or self.counterfactual_buffer.size() == 0:
-            return replay_data
-        branched: TwoStageReplayBufferSamples = self.counterfactual_buffer.sample(self.counterfactual_batch_size)  # type: ignore[assignment]
-        return concat_samples(replay_data, branched, self.gamma)
+            return replay_data, 0
+        replayed, branched = self.counterfactual_buffer.sample_pairs(self.counterfactual_batch_size, self.replay_buffer)
+        if self.counterfactual_coef == 0:
+            return concat_samples(replay_data, branched, self.gamma), 0
+        pairs = concat_samples(replayed, branched, self.gamma)
+        return concat_samples(replay_data, pairs, self.gamma), self.counterfactual_batch_size
+
+    def _with_paired_term(
+        self, critic: losses.PreAssignCriticLoss, start: int, n_pairs: int, logs: dict[str, list[float]]
+    ) -> th.Tensor:
+        """The stage-1 critic loss plus the paired term on the counterfactual pairs from row ``start`` (detail 17)."""
+        if n_pairs == 0:
+            return critic.loss
+        paired = losses.paired_critic_loss(critic.current, critic.target_q, start, n_pairs)
+        logs["paired_critic_loss"].append(paired.item())
+        return critic.loss + self.counterfactual_coef * paired
 
     @staticmethod
     def _alpha(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
@@ -447,7 +487,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         logs: dict[str, list[float]] = defaultdict(list)
 
         for gradient_step in range(gradient_steps):
-            replay_data = self._sample(batch_size)
+            replay_data, n_pairs = self._sample(batch_size)
             obs = self.policy.parse(replay_data.observations)
             # During the critic warm-up (implementation detail 11) only the critics learn: the actors and the
             # temperatures keep their initial values.
@@ -472,8 +512,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     self.entropy_bonus == "mean",
                 )
                 logs["critic_loss"].append(critic.loss.item())
+                critic_loss = self._with_paired_term(critic, batch_size, n_pairs, logs)
                 if not actors_learn:
-                    self._step(self.critic.optimizer, critic.loss)
+                    self._step(self.critic.optimizer, critic_loss)
                 else:
                     dist = self.actor(obs)
                     # Temperature: log α·(H̄ − H̄*) on the mean per-entity entropy (detail 4).
@@ -517,7 +558,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     # Disjoint parameters: one backward pass gives each network its own gradient.
                     self.critic.optimizer.zero_grad()
                     self.actor.optimizer.zero_grad()
-                    (critic.loss + actor_loss).backward()
+                    (critic_loss + actor_loss).backward()
                     self.critic.optimizer.step()
                     self.actor.optimizer.step()
 
