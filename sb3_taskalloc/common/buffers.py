@@ -195,19 +195,14 @@ class CounterfactualBuffer(TwoStageReplayBuffer):
         super().__init__(*args, **kwargs)
         self.branched = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
 
-    def add_at(
-        self,
-        row: int,
-        obs: dict[str, np.ndarray],
-        next_obs: dict[str, np.ndarray],
-        action: np.ndarray,
-        reward: np.ndarray,
-        done: np.ndarray,
-        infos: list[dict[str, Any]],
-    ) -> None:
-        """Store the branched transitions of every env at row ``row`` (the replay buffer's next row)."""
+    def add_at(self, row: int, *transition: Any) -> None:
+        """Store the branched transitions of every env at row ``row`` (the replay buffer's next row).
+
+        :param transition: the arguments of :meth:`add` (observations, next observations, packed decisions, rewards,
+            dones, infos)
+        """
         self.pos = row
-        self.add(obs, next_obs, action, reward, done, infos)
+        self.add(*transition)
         self.branched[row] = True
 
     def clear(self, row: int) -> None:
