@@ -213,13 +213,14 @@ class CounterfactualBuffer(TwoStageReplayBuffer):
         """The number of branched transitions held."""
         return int(self.branched.sum())
 
-    def sample_pairs(
-        self, batch_size: int, replay_buffer: TwoStageReplayBuffer
-    ) -> tuple[TwoStageReplayBufferSamples, TwoStageReplayBufferSamples]:
-        """``batch_size`` random branched transitions and the replayed transitions of the same states, row for row."""
+    def sample_branched(
+        self, batch_size: int, replay_buffer: TwoStageReplayBuffer | None = None
+    ) -> tuple[TwoStageReplayBufferSamples, TwoStageReplayBufferSamples | None]:
+        """``batch_size`` random branched transitions and, given ``replay_buffer``, the replayed transitions of the same
+        states, row for row (else None)."""
         rows, envs = np.nonzero(self.branched)
         pick = np.random.randint(0, len(rows), size=batch_size)
-        return (
-            replay_buffer._get_samples(rows[pick], env_indices=envs[pick]),
-            self._get_samples(rows[pick], env_indices=envs[pick]),
-        )
+        branched = self._get_samples(rows[pick], env_indices=envs[pick])
+        if replay_buffer is None:
+            return branched, None
+        return branched, replay_buffer._get_samples(rows[pick], env_indices=envs[pick])

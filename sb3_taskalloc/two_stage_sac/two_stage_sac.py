@@ -457,8 +457,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         replay_data: TwoStageReplayBufferSamples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[assignment]
         if self.counterfactual_buffer is None or self.counterfactual_buffer.size() == 0:
             return replay_data, 0
-        replayed, branched = self.counterfactual_buffer.sample_pairs(self.counterfactual_batch_size, self.replay_buffer)
-        if self.counterfactual_coef == 0:
+        paired = self.counterfactual_coef > 0
+        branched, replayed = self.counterfactual_buffer.sample_branched(
+            self.counterfactual_batch_size, self.replay_buffer if paired else None
+        )
+        if replayed is None:
             return concat_samples(replay_data, branched, self.gamma), 0
         pairs = concat_samples(replayed, branched, self.gamma)
         return concat_samples(replay_data, pairs, self.gamma), self.counterfactual_batch_size
@@ -472,6 +475,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         paired = losses.paired_critic_loss(critic.current, critic.target_q, start, n_pairs)
         logs["paired_critic_loss"].append(paired.item())
         return critic.loss + self.counterfactual_coef * paired
+
+    @staticmethod
+    def _first_rows(view: ObsView, dist: MaskedCategorical, n: int) -> tuple[ObsView, MaskedCategorical]:
+        """The first ``n`` rows of a minibatch and of the actor's distribution on it (the actor pass is reused)."""
+        rows_view = ObsView(*(x[:n] for x in view))
+        return rows_view, MaskedCategorical(dist.logits[:n], rows_view.valid)
 
     @staticmethod
     def _alpha(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
@@ -537,17 +546,13 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     logs["actor_loss"].append(actor_loss.item())
                     # Exact one-step improvement on the first rows (detail 14): each costs profit_entities × M decodes.
                     if self.profit_coef > 0:
-                        profit_rows = slice(0, self.profit_batch_size)
-                        rows_view = ObsView(*(x[profit_rows] for x in obs))
-                        rows_dist = MaskedCategorical(dist.logits[profit_rows], rows_view.valid)  # the actor pass above
+                        rows_view, rows_dist = self._first_rows(obs, dist, self.profit_batch_size)
                         profit = losses.preassign_profit_loss(rows_dist, self.selector.head, rows_view, self.profit_entities)
                         logs["profit_loss"].append(profit.item())
                         actor_loss = actor_loss + self.profit_coef * profit
                     # Search distillation on the first rows (detail 16): each costs search_samples decodes.
                     if self.search_coef > 0:
-                        search_rows = slice(0, self.search_batch_size)
-                        rows_view = ObsView(*(x[search_rows] for x in obs))
-                        rows_dist = MaskedCategorical(dist.logits[search_rows], rows_view.valid)  # the actor pass above
+                        rows_view, rows_dist = self._first_rows(obs, dist, self.search_batch_size)
                         search = losses.preassign_search_loss(
                             rows_dist, self.selector.head, rows_view, self.search_samples, self.search_temperature
                         )
