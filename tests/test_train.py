@@ -488,6 +488,10 @@ def test_n_step_returns_of_the_replay_buffer():
     th.testing.assert_close(data.discounts[:, 0], th.tensor([0.125, 0.25, 0.125, 0.25]))
     th.testing.assert_close(data.next_observations["task_reward"][:, 0], th.tensor([2.0, 2.0, 5.0, 5.0]))
     th.testing.assert_close(data.dones[:, 0], th.tensor([1.0, 1.0, 0.0, 0.0]))
+    single = buf._get_samples(np.array([0, 3]), env_indices=np.array([0, 0]), one_step=True)  # a pair's replayed row
+    assert single.discounts is None
+    th.testing.assert_close(single.rewards[:, 0], th.tensor([1.0, 4.0]))
+    th.testing.assert_close(single.next_observations["task_reward"][:, 0], th.tensor([0.0, 3.0]))
     one_step = TwoStageReplayBuffer(10, env.observation_space, env.action_space, device="cpu")
     one_step.add(marked, marked, decision, np.array([1.0]), np.array([False]), [{}])
     assert one_step._get_samples(np.array([0])).discounts is None
@@ -680,9 +684,9 @@ def _almighty() -> gym.Env:
 
 def test_counterfactual_rows_follow_the_replayed_ones():
     """With the paired term the stage-1 minibatch is the replayed rows, then K replayed rows and the K branched rows of
-    the same states, with γ as the discount of the one-step rows beside n-step rows; training runs on it and logs the
-    term. Without it the K branched rows alone follow. A row the replay buffer overwrites without a branch loses its
-    pair. Bad settings are named."""
+    the same states, both one-step, with γ as the discount of the one-step rows beside n-step rows; training runs on it
+    and logs the term. Without it the K branched rows alone follow. A row the replay buffer overwrites without a branch
+    loses its pair. Bad settings are named."""
     model = TwoStageSAC(
         "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=8, counterfactual_coef=1.0,
         n_steps=2, learning_starts=20, batch_size=16, seed=0, device="cpu",
@@ -696,15 +700,16 @@ def test_counterfactual_rows_follow_the_replayed_ones():
     for value in data.observations.values():
         th.testing.assert_close(value[16:24], value[24:32])  # the pairs share their states
     assert data.discounts is not None
-    th.testing.assert_close(data.discounts[24:], th.full((8, 1), model.gamma))
-    assert bool((data.discounts[:24] <= model.gamma).all())
+    th.testing.assert_close(data.discounts[16:], th.full((16, 1), model.gamma))  # both rows of a pair are one-step
+    assert bool((data.discounts[:16] <= model.gamma).all())
     model.counterfactual_coef = 0.0
     data, n_pairs = model._sample(16)
     assert n_pairs == 0 and data.rewards.shape == (24, 1)
     rows = np.flatnonzero(buffer.branched[:, 0])
     model._branched = False
     model.replay_buffer.pos = int(rows[0])
-    model._store_transition(model.replay_buffer, np.zeros((1, 25 + 2 * 9 * 25), np.int64), model._last_obs, np.zeros(1),
+    N, M = buffer.n_entities, buffer.n_tasks
+    model._store_transition(model.replay_buffer, np.zeros((1, N + 2 * M * N), np.int64), model._last_obs, np.zeros(1),
                             np.zeros(1, bool), [{"commitment_reward": 0.0}])  # fmt: skip
     assert not buffer.branched[rows[0], 0] and buffer.size() == len(rows) - 1
     for rate in (-0.1, 1.5, float("nan")):

@@ -134,13 +134,18 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         super().add(obs, next_obs, env_action, reward, done, infos)
 
     def _get_samples(  # type: ignore[override]
-        self, batch_inds: np.ndarray, env: VecNormalize | None = None, env_indices: np.ndarray | None = None
+        self,
+        batch_inds: np.ndarray,
+        env: VecNormalize | None = None,
+        env_indices: np.ndarray | None = None,
+        one_step: bool = False,
     ) -> TwoStageReplayBufferSamples:
-        """The transitions at rows ``batch_inds`` of envs ``env_indices`` (random envs by default, as SB3's)."""
+        """The transitions at rows ``batch_inds`` of envs ``env_indices`` (random envs by default, as SB3's); with
+        ``one_step`` one-step transitions whatever ``n_steps`` is."""
         if env_indices is None:
             env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
         obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.observations.items()}
-        if self.n_steps == 1:
+        if self.n_steps == 1 or one_step:
             last, discounts = batch_inds, None
             rewards = self.rewards[batch_inds, env_indices]
         else:
@@ -217,10 +222,11 @@ class CounterfactualBuffer(TwoStageReplayBuffer):
         self, batch_size: int, replay_buffer: TwoStageReplayBuffer | None = None
     ) -> tuple[TwoStageReplayBufferSamples, TwoStageReplayBufferSamples | None]:
         """``batch_size`` random branched transitions and, given ``replay_buffer``, the replayed transitions of the same
-        states, row for row (else None)."""
+        states, row for row (else None), one-step as the branched ones are, so that a pair's targets differ by the
+        decision alone."""
         rows, envs = np.nonzero(self.branched)
         pick = np.random.randint(0, len(rows), size=batch_size)
         branched = self._get_samples(rows[pick], env_indices=envs[pick])
         if replay_buffer is None:
             return branched, None
-        return branched, replay_buffer._get_samples(rows[pick], env_indices=envs[pick])
+        return branched, replay_buffer._get_samples(rows[pick], env_indices=envs[pick], one_step=True)
