@@ -104,6 +104,13 @@ published code):
    λ_c·½ Σ_k mean((Q^k(s, c) − Q^k(s, c′)) − (y − y′))²: the state's value cancels from the difference, and so does
    most of the targets' noise, since both transitions met the same random draws. The envs must live in the training
    process (``DummyVecEnv``).
+18. Select-stage search distillation (``select_search_coef`` λ_p, not in the paper): the select stage's own objective,
+   a task's reward on cover minus its team's pair costs, is computable from the observation. For each task of the
+   stored first round, the deterministic decode of its team and K − 1 decodes sampled from the pointer at temperature
+   T are scored by it; where the best team beats the deterministic one, the pointer's loss adds −λ_p·Σ_t log π(a*_t|s*_t)
+   over that team's pick sequence (teacher-forced). The pointer decodes autoregressively, so unlike the factorised
+   pre-assignment it can represent a joint choice such as the exact min-cost cover of its candidates; the unit-cost rule
+   it starts from spends more (on MT an exact cover of the same candidates returns about a fifth more).
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

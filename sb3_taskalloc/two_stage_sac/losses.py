@@ -19,7 +19,13 @@ from torch.nn import functional as F
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
 from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
-from sb3_taskalloc.two_stage_sac.select_stage import round_profit, sampled_search, stored_rounds, teacher_forced
+from sb3_taskalloc.two_stage_sac.select_stage import (
+    round_profit,
+    sampled_search,
+    select_search,
+    stored_rounds,
+    teacher_forced,
+)
 
 
 @contextmanager
@@ -296,3 +302,38 @@ def select_losses(
         entropy=dist.entropy()[valid],
         target_entropy=target_entropy_ratio * th.log(n_choices.clamp_min(1))[valid],
     )
+
+
+class SelectSearchLoss(NamedTuple):
+    loss: th.Tensor  # −mean over the improved tasks of log π(a*) = Σ_t log π(a*_t | s*_t) (0 if none improved)
+    improved: th.Tensor  # share of the tasks with candidates where a sampled team beat the deterministic one
+    gain: th.Tensor  # mean profit gain of the best team over the deterministic one, over those tasks
+
+
+def select_search_loss(
+    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float
+) -> SelectSearchLoss:
+    """Distillation of a select-stage search (implementation detail 18): per task of the stored first round, the best
+    of its deterministic team and ``samples`` − 1 sampled teams by the task's profit (:func:`.select_search`); where it
+    beats the deterministic team the loss raises the log-probability of its pick sequence, teacher-forced.
+
+    :param candidates: (B, M, N) stored candidate sets of pre-assigned decisions
+    :param samples: K, decodes per task including the deterministic one (1: the term is 0)
+    :param temperature: T of the sampled decodes
+    """
+    (task_of,) = stored_rounds(candidates, preassign=True)
+    head = selector.head
+    with th.no_grad():
+        found = select_search(head, view, task_of, samples, temperature)
+        improved = found.profit > found.base
+        has = candidates.any(-1) & view.task_mask
+        gain = (found.profit - found.base)[has].mean() if bool(has.any()) else found.profit.new_zeros(())
+        share = improved[has].float().mean() if bool(has.any()) else found.profit.new_zeros(())
+    tf = teacher_forced(view, task_of, found.rank) if bool(improved.any()) else None
+    if tf is None:
+        return SelectSearchLoss(found.profit.new_zeros(()), share, gain)
+    M = candidates.shape[1]
+    logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
+    dist = SegmentedCategorical(logits, tf.choices, tf.seg, M)
+    log_p = segment_sum(tf.picked * dist.log_probs, tf.seg, M).sum(0)  # (B, M): Σ_t log π of each task's picks
+    return SelectSearchLoss(-log_p[improved].mean(), share, gain)

@@ -227,13 +227,19 @@ class SelectState:
 
 
 def decode_round(
-    head: PointerHead | None, view: ObsView, task_of: th.Tensor, deterministic: bool, uniform: bool = False
+    head: PointerHead | None,
+    view: ObsView,
+    task_of: th.Tensor,
+    deterministic: bool,
+    uniform: bool = False,
+    temperature: float = 1.0,
 ) -> SelectState:
     """Decode the teams of every task of one round in parallel (one pick per task per step).
 
     :param head: the pointer actor (None: uniformly random valid picks, the warm-up's exploration)
     :param task_of: (B, N) task each entity is a candidate of in this round (−1: none)
     :param deterministic: argmax picks (else sampled)
+    :param temperature: T of sampled picks, drawn from softmax(logits / T)
     """
     st = SelectState(view, task_of)
     B, _, N = st.seg.shape
@@ -247,6 +253,8 @@ def decode_round(
         else:
             task_state, dyn = st.features()
             logits = head(d, task_state, dyn, task_of)  # type: ignore[misc]
+            if not deterministic and temperature != 1.0:
+                logits = logits / temperature
         picks = masked_pick(logits.unsqueeze(1).masked_fill(~mask, NEG), deterministic)  # (B, M)
         valid = st.active.clone()
         old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
@@ -258,8 +266,47 @@ def decode_round(
 def round_profit(head: PointerHead, view: ObsView, task_of: th.Tensor) -> th.Tensor:
     """(B,) the internal profit Σ_j kept_j·(r_j − Σ pair costs of j's team) of the deterministic select stage on the
     candidate sets ``task_of``: what the env credits when the teams commit (its commitment reward before decay)."""
-    st = decode_round(head, view, task_of, deterministic=True)
-    return (st.kept() * (view.reward - st.cost)).sum(-1)
+    return task_profit(decode_round(head, view, task_of, deterministic=True)).sum(-1)
+
+
+def task_profit(st: SelectState) -> th.Tensor:
+    """(B, M) each task's internal profit after decoding: r_j − Σ pair costs of its team if kept, else 0."""
+    return st.kept() * (st.view.reward - st.cost)
+
+
+class SelectSearchResult(NamedTuple):
+    """Each task's best team of a select-stage search (:func:`select_search`)."""
+
+    rank: th.Tensor  # (B, M, N) pick steps of each task's best decode (−1: not picked)
+    profit: th.Tensor  # (B, M) its profit
+    base: th.Tensor  # (B, M) the profit of the deterministic decode
+
+
+def select_search(
+    head: PointerHead, view: ObsView, task_of: th.Tensor, samples: int, temperature: float
+) -> SelectSearchResult:
+    """Per task, the best of the deterministic decode and ``samples`` − 1 sampled decodes of its team, by the task's
+    profit (:func:`task_profit`, the select stage's return: reward on cover minus the pair costs); the deterministic
+    decode wins ties (implementation detail 18). Candidate sets are disjoint, so the tasks decode independently and
+    their best teams together form one decision.
+
+    :param head: the pointer actor
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param samples: K, decodes per task including the deterministic one (1: that one alone)
+    :param temperature: T of the sampled decodes (> 1: picks further from the argmax)
+    """
+    base = decode_round(head, view, task_of, deterministic=True)
+    p0 = task_profit(base)
+    if samples <= 1:
+        return SelectSearchResult(base.rank, p0, p0)
+    (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
+    rep = ObsView(*(x.repeat_interleave(S, 0) for x in view))
+    st = decode_round(head, rep, task_of.repeat_interleave(S, 0), deterministic=False, temperature=temperature)
+    profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first
+    best = profit.argmax(1)  # (B, M), the first maximum
+    ranks = th.cat([base.rank.unsqueeze(1), st.rank.view(B, S, M, N)], 1)
+    rank = th.gather(ranks, 1, best.view(B, 1, M, 1).expand(B, 1, M, N)).squeeze(1)
+    return SelectSearchResult(rank, th.gather(profit, 1, best.unsqueeze(1)).squeeze(1), p0)
 
 
 class SearchResult(NamedTuple):

@@ -123,6 +123,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param search_samples: pre-assignments per state of that term, the argmax included
     :param search_temperature: temperature of that term's samples
     :param search_batch_size: rows of each minibatch used by that term (each costs ``search_samples`` decodes)
+    :param select_search_coef: weight λ_p of the select-stage search-distillation term in the pointer's loss
+        (implementation detail 18, not in the paper; 0: off): each task's pointer learns the best of
+        ``select_search_samples`` decodes of its team by the task's profit, where it beats the deterministic decode
+        (pre-assigning policies only)
+    :param select_search_samples: decodes per task of that term, the deterministic one included
+    :param select_search_temperature: temperature of that term's sampled decodes
     :param counterfactual_rate: share of the collection steps at which every env also steps a copy of itself with a
         second decision sampled at the same state (implementation detail 17, not in the paper; 0: off; the envs must
         live in this process, as in a ``DummyVecEnv``): the copy shares the env's random state, so both transitions
@@ -184,6 +190,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         search_samples: int = 32,
         search_temperature: float = 2.0,
         search_batch_size: int = 16,
+        select_search_coef: float = 0.0,
+        select_search_samples: int = 16,
+        select_search_temperature: float = 1.0,
         counterfactual_rate: float = 0.0,
         counterfactual_batch_size: int = 32,
         counterfactual_coef: float = 0.0,
@@ -231,6 +240,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "profit_batch_size": profit_batch_size,
             "search_samples": search_samples,
             "search_batch_size": search_batch_size,
+            "select_search_samples": select_search_samples,
             "counterfactual_batch_size": counterfactual_batch_size,
         }
         for name, count in counts.items():
@@ -256,22 +266,30 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         if actor_warmup < 0:
             raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
         self.actor_warmup = actor_warmup
-        for name, coef in (("prior_coef", prior_coef), ("select_prior_coef", select_prior_coef)):
-            if not coef >= 0.0:
-                raise ValueError(f"{name} must be >= 0, got {coef!r}")
-        if not (math.isfinite(profit_coef) and profit_coef >= 0.0):
-            raise ValueError(f"profit_coef must be a finite number >= 0, got {profit_coef!r}")
+        weights = {
+            "prior_coef": prior_coef,
+            "select_prior_coef": select_prior_coef,
+            "profit_coef": profit_coef,
+            "search_coef": search_coef,
+            "select_search_coef": select_search_coef,
+        }
+        for name, weight in weights.items():
+            if not (math.isfinite(weight) and weight >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {weight!r}")
+        temperatures = {"search_temperature": search_temperature, "select_search_temperature": select_search_temperature}
+        for name, temperature in temperatures.items():
+            if not (math.isfinite(temperature) and temperature > 0.0):
+                raise ValueError(f"{name} must be a finite number > 0, got {temperature!r}")
         self.profit_coef = float(profit_coef)
         self.profit_entities = profit_entities
         self.profit_batch_size = profit_batch_size
-        if not (math.isfinite(search_coef) and search_coef >= 0.0):
-            raise ValueError(f"search_coef must be a finite number >= 0, got {search_coef!r}")
-        if not (math.isfinite(search_temperature) and search_temperature > 0.0):
-            raise ValueError(f"search_temperature must be a finite number > 0, got {search_temperature!r}")
         self.search_coef = float(search_coef)
         self.search_samples = search_samples
         self.search_temperature = float(search_temperature)
         self.search_batch_size = search_batch_size
+        self.select_search_coef = float(select_search_coef)
+        self.select_search_samples = select_search_samples
+        self.select_search_temperature = float(select_search_temperature)
         if not (isinstance(counterfactual_rate, int | float) and 0.0 <= counterfactual_rate <= 1.0):
             raise ValueError(f"counterfactual_rate must be a share in [0, 1], got {counterfactual_rate!r}")
         self.counterfactual_rate = float(counterfactual_rate)
@@ -306,6 +324,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom", category=UserWarning)
             super()._setup_model()
         self._create_aliases()
+        if self.select_search_coef > 0 and not self.policy.preassign:
+            raise ValueError(
+                "select_search_coef needs a pre-assigning policy: without pre-assignment (W/o Pre) the tasks pick from one "
+                "shared pool, so their teams cannot be searched independently; set select_search_coef=0"
+            )
         self.counterfactual_buffer = self._make_counterfactual_buffer()
         self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
         self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = self._entropy_coefficient(
@@ -567,31 +590,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                     self.critic.optimizer.step()
                     self.actor.optimizer.step()
 
-            # Stage 2, select (paper: Select Module, Algorithm 3): discrete SAC on the stored pick orders (detail 5),
-            # on the first ``select_batch_size`` rows (each holds up to M × team-size transitions).
-            select_alpha = self._alpha(self.log_select_ent_coef, self.select_ent_coef_tensor)
-            logs["select_ent_coef"].append(select_alpha.item())
-            rows = slice(0, self.select_batch_size)
-            select = losses.select_losses(
-                self.selector,
-                self.select_critic,
-                self.select_critic_target,
-                ObsView(*(x[rows] for x in obs)),
-                replay_data.candidates[rows],
-                replay_data.pick_rank[rows],
-                self.policy.preassign,
-                select_alpha,
-                self.target_entropy_ratio,
-                self.policy.selector_prior,
-                self.select_prior_coef if actors_learn else 0.0,  # the prior term enters only the actor loss
-            )
-            if select is not None:
-                if actors_learn and self.log_select_ent_coef is not None and self.select_ent_coef_optimizer is not None:
-                    ent_loss = losses.ent_coef_loss(self.log_select_ent_coef, select.entropy, select.target_entropy)
-                    logs["select_ent_coef_loss"].append(self._step(self.select_ent_coef_optimizer, ent_loss))
-                logs["select_critic_loss"].append(self._step(self.select_critic.optimizer, select.critic_loss))
-                if actors_learn:
-                    logs["select_actor_loss"].append(self._step(self.selector.optimizer, select.actor_loss))
+            # Stage 2, select (paper: Select Module, Algorithm 3).
+            self._train_select(obs, replay_data, actors_learn, logs)
 
             # Target networks: Polyak averaging every ``target_update_interval`` gradient steps.
             if gradient_step % self.target_update_interval == 0:
@@ -603,6 +603,52 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
+
+    def _train_select(
+        self, obs: ObsView, replay_data: TwoStageReplayBufferSamples, actors_learn: bool, logs: dict[str, list[float]]
+    ) -> None:
+        """One select-stage update: discrete SAC on the stored pick orders (detail 5), on the first ``select_batch_size``
+        rows (each holds up to M × team-size transitions), and the search-distillation term (detail 18).
+
+        :param obs: the minibatch's parsed observations
+        :param actors_learn: the pointer and its temperature learn (false during the critic warm-up)
+        :param logs: the update's log values, appended to
+        """
+        select_alpha = self._alpha(self.log_select_ent_coef, self.select_ent_coef_tensor)
+        logs["select_ent_coef"].append(select_alpha.item())
+        rows = slice(0, self.select_batch_size)
+        view = ObsView(*(x[rows] for x in obs))
+        select = losses.select_losses(
+            self.selector,
+            self.select_critic,
+            self.select_critic_target,
+            view,
+            replay_data.candidates[rows],
+            replay_data.pick_rank[rows],
+            self.policy.preassign,
+            select_alpha,
+            self.target_entropy_ratio,
+            self.policy.selector_prior,
+            self.select_prior_coef if actors_learn else 0.0,  # the prior term enters only the actor loss
+        )
+        if select is None:
+            return
+        if actors_learn and self.log_select_ent_coef is not None and self.select_ent_coef_optimizer is not None:
+            ent_loss = losses.ent_coef_loss(self.log_select_ent_coef, select.entropy, select.target_entropy)
+            logs["select_ent_coef_loss"].append(self._step(self.select_ent_coef_optimizer, ent_loss))
+        logs["select_critic_loss"].append(self._step(self.select_critic.optimizer, select.critic_loss))
+        if not actors_learn:
+            return
+        actor_loss = select.actor_loss
+        if self.select_search_coef > 0:  # each row costs select_search_samples decodes
+            found = losses.select_search_loss(
+                self.selector, view, replay_data.candidates[rows], self.select_search_samples, self.select_search_temperature
+            )
+            logs["select_search_loss"].append(found.loss.item())
+            logs["select_search_improved"].append(found.improved.item())
+            logs["select_search_gain"].append(found.gain.item())
+            actor_loss = actor_loss + self.select_search_coef * found.loss
+        logs["select_actor_loss"].append(self._step(self.selector.optimizer, actor_loss))
 
     @staticmethod
     def _step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> float:
