@@ -16,10 +16,10 @@ from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.baselines import GreedyAllocator
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical
 from sb3_taskalloc.common.mixers import AMIXMixer
-from sb3_taskalloc.common.torch_layers import ObsView, parse_obs
+from sb3_taskalloc.common.torch_layers import NEG, ObsView, parse_obs
 from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac import losses
-from sb3_taskalloc.two_stage_sac.select_stage import SelectState
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState, select_search, teacher_forced
 
 
 @pytest.fixture(scope="module")
@@ -649,6 +649,67 @@ def test_preassign_search_loss_distils_the_best_sample():
     for bad in ({"search_coef": -1.0}, {"search_temperature": 0.0}, {"search_samples": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
+
+
+def test_select_search_loss_distils_the_best_team():
+    """``select_search_coef`` (implementation detail 18): per task, the search's team is at least as profitable as the
+    deterministic one, its teacher-forced rewards add up to that profit, and the loss is −Σ_t log π(a*_t|s*_t) over the
+    tasks it improves, recomputed here by stepping a :class:`SelectState` through the forced picks one at a time."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/MT-v0")
+    obs = [env.reset(seed=s)[0] for s in range(8)]
+    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    head = model.selector.head
+    B, N, M = view.pair_cost.shape
+    with th.no_grad():
+        task_of = th.where(view.assignable, model.actor(view).get_actions(True), -1)
+    candidates = task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)
+    th.manual_seed(0)
+    found = select_search(head, view, task_of, samples=32, temperature=3.0)
+    th.manual_seed(0)
+    search = losses.select_search_loss(model.selector, view, candidates, samples=32, temperature=3.0)
+    improved = found.profit > found.base
+    assert bool(improved.any()), "no sampled team beat the deterministic one: the case checks nothing"
+    assert bool((found.profit >= found.base).all())
+    assert bool(((found.rank >= 0) <= candidates).all())  # a task picks among its own candidates only
+    tf = teacher_forced(view, task_of, found.rank)
+    assert tf is not None
+    th.testing.assert_close(tf.reward.sum(0)[improved], found.profit[improved], atol=1e-4, rtol=1e-5)
+    st = SelectState(view, task_of)
+    d = head.embed_entities(view)
+    log_p = th.zeros(B, M)
+    for t in range(N):
+        if not bool(st.active.any()):
+            break
+        task_state, dyn = st.features()
+        logits = head(d, task_state, dyn, task_of).unsqueeze(1).masked_fill(~st.choice_mask(), NEG)  # (B, M, N)
+        hit = found.rank == t
+        picks, valid = hit.float().argmax(-1), hit.any(-1) & st.active
+        log_p = log_p + th.where(valid, th.log_softmax(logits, -1).gather(-1, picks.unsqueeze(-1)).squeeze(-1), 0.0)
+        st.advance(picks, valid)
+    th.testing.assert_close(search.loss, -log_p[improved].mean(), atol=1e-4, rtol=1e-5)
+    has = candidates.any(-1) & view.task_mask
+    assert float(search.improved) == pytest.approx(float(improved[has].float().mean()))
+    assert float(search.gain) == pytest.approx(float((found.profit - found.base)[has].mean()), abs=1e-4)
+    search.loss.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.selector.parameters())
+    one = select_search(head, view, task_of, samples=1, temperature=3.0)
+    assert bool((one.profit == one.base).all())
+    assert float(losses.select_search_loss(model.selector, view, candidates, samples=1, temperature=3.0).loss) == 0.0
+    bad_kwargs = ({"select_search_coef": -1.0}, {"select_search_temperature": 0.0}, {"select_search_samples": 0})
+    for bad in bad_kwargs:
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
+    with pytest.raises(ValueError, match="pre-assigning policy"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_search_coef=1.0, policy_kwargs={"preassign": False})
+    # The term runs inside training and its statistics reach the logger.
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/MT-v0", select_search_coef=1.0, select_search_samples=4, learning_starts=30, batch_size=8,
+        select_batch_size=4, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
+    )  # fmt: skip
+    model.learn(60)
+    model.train(gradient_steps=1, batch_size=8)
+    assert "train/select_search_improved" in model.logger.name_to_value
 
 
 def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():
