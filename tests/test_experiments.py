@@ -148,6 +148,20 @@ def test_table_trains_on_the_zoo_configs_n_envs(tmp_path, monkeypatch):
     assert (run.folder / "curves.png").exists()
 
 
+def test_table_trains_w_o_pre_without_the_team_search(tmp_path, monkeypatch):
+    """A zoo block with ``select_search_coef`` (implementation detail 18, pre-assigning policies only) trains Ours with
+    it and the W/o Pre columns, which decode from one shared pool, without it instead of failing."""
+    from sb3_taskalloc.experiments import table
+
+    zoo = table.zoo_hyperparameters
+    monkeypatch.setattr(table, "zoo_hyperparameters", lambda env_id: {**zoo(env_id), "select_search_coef": 1.0})
+    run = TableRun("RBF", 1, "smoke", tmp_path, progress=False)
+    log = tmp_path / "log.monitor.csv"
+    assert run._new_model(table.METHODS["Ours"], "TaskAlloc/RBF-v0", 0, log).select_search_coef == 1.0
+    pooled = run._new_model(table.METHODS["W/o Pre (sequence)"], "TaskAlloc/RBF-v0", 0, log)
+    assert not pooled.policy.preassign and pooled.select_search_coef == 0.0
+
+
 def test_table_rejects_bad_arguments():
     with pytest.raises(ValueError, match="env"):
         TableRun("Foo", 1, "smoke")

@@ -254,6 +254,9 @@ class TableRun:
         kwargs = self._sac_kwargs()
         env = self._train_env(env_id, log, int(kwargs.pop("n_envs", 1)))
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
+        if not policy_kwargs.get("preassign", True):
+            # W/o Pre decodes the tasks from one shared pool: their teams cannot be searched one task at a time (detail 18).
+            kwargs.pop("select_search_coef", None)
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 
     def _load(self, method: Method, path: Path, env_id: str | None = None, log: Path | None = None) -> Any:
