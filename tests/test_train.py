@@ -19,7 +19,7 @@ from sb3_taskalloc.common.mixers import AMIXMixer
 from sb3_taskalloc.common.torch_layers import NEG, ObsView, parse_obs
 from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac import losses
-from sb3_taskalloc.two_stage_sac.select_stage import SelectState, select_search, teacher_forced
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState, cover_search, select_search, teacher_forced
 
 
 @pytest.fixture(scope="module")
@@ -710,6 +710,54 @@ def test_select_search_loss_distils_the_best_team():
     model.learn(60)
     model.train(gradient_steps=1, batch_size=8)
     assert "train/select_search_improved" in model.logger.name_to_value
+
+
+def test_select_search_exact_finds_the_most_profitable_team_of_each_task():
+    """``select_search_method="exact"``: each task's team is the most profitable cover of its candidates (checked
+    against every subset of them), never worse than the deterministic decode or a sampled search, decoded in an order
+    that teacher forcing reproduces; the loss distils it where it beats the deterministic team."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/MT-v0")
+    obs = [env.reset(seed=s)[0] for s in range(8)]
+    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    head = model.selector.head
+    B, M = view.task_mask.shape
+    with th.no_grad():
+        task_of = th.where(view.assignable, model.actor(view).get_actions(True), -1)
+        exact = cover_search(head, view, task_of)
+        th.manual_seed(0)
+        sampled = select_search(head, view, task_of, samples=32, temperature=3.0)
+    candidates = task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)
+    assert bool(((exact.rank >= 0) <= candidates).all())
+    assert bool((exact.profit >= exact.base).all()) and bool((exact.profit >= sampled.profit - 1e-4).all())
+    checked = 0
+    for b in range(B):
+        for j in range(M):
+            members = th.nonzero(candidates[b, j]).flatten().tolist()
+            if not 0 < len(members) <= 10:
+                continue
+            best = 0.0
+            for mask in range(1, 2 ** len(members)):
+                team = [i for k, i in enumerate(members) if mask >> k & 1]
+                if bool((view.supply[b, team].sum(0) >= view.demand[b, j] - 1e-5).all()):
+                    best = max(best, float(view.reward[b, j] - view.pair_cost[b, team, j].sum()))
+            assert float(exact.profit[b, j]) == pytest.approx(best, abs=1e-4), (b, j)
+            checked += 1
+    improved = exact.profit > exact.base
+    assert checked > 10 and bool(improved.any()), "no task checked or improved: the case checks nothing"
+    tf = teacher_forced(view, task_of, exact.rank)
+    assert tf is not None
+    th.testing.assert_close(tf.reward.sum(0)[improved], exact.profit[improved], atol=1e-4, rtol=1e-5)
+    found = losses.select_search_loss(model.selector, view, candidates, samples=1, temperature=1.0, method="exact")
+    assert float(found.loss.detach()) > 0 and float(found.improved) > 0
+    with pytest.raises(ValueError, match="select_search_method"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", select_search_method="best")
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/MT-v0", select_search_coef=1.0, select_search_method="exact", learning_starts=30,
+        batch_size=8, select_batch_size=4, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
+    )  # fmt: skip
+    model.learn(60)
+    assert model.logger.name_to_value["train/select_search_improved"] >= 0
 
 
 def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():

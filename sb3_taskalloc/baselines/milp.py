@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import Bounds, LinearConstraint, milp
@@ -23,12 +24,69 @@ class MILPSolution:
     seconds: float
 
 
-class MILPAllocator(Allocator):
-    """The exact allocation of the current step among free entities and open tasks:
+def max_profit_cover(
+    supply: np.ndarray,
+    demand: np.ndarray,
+    reward: np.ndarray,
+    cost: np.ndarray,
+    allowed: np.ndarray | None = None,
+    time_limit: float = 10.0,
+    mip_rel_gap: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray, Any]:
+    """The most profitable set of covered tasks and their teams, among the ``allowed`` entity-task pairs:
 
     maximise Σ_j R_j y_j − Σ_ij c_ij x_ij  subject to  Σ_j x_ij ≤ 1 (each entity serves at most one task),
     Σ_i min(s_ik, d_jk) x_ij ≥ d_jk y_j for every resource k (a task pays only if covered), x_ij ≤ y_j,
-    x, y binary. It is the per-step upper reference: it ignores travel time, decay and future tasks.
+    x, y binary, x_ij = 0 where a pair is not allowed (it has no variable).
+
+    :param supply: (n, K) supplies of the entities
+    :param demand: (m, K) demands of the tasks
+    :param reward: (m,) rewards of the tasks
+    :param cost: (n, m) pair costs
+    :param allowed: (n, m) bool pairs that may be assigned (None: all)
+    :return: x (n, m) bool teams of the covered tasks, y (m,) bool covered tasks, and scipy's result
+    """
+    n, m, K = len(supply), len(demand), supply.shape[1]
+    ents, tasks = np.nonzero(np.ones((n, m), bool) if allowed is None else allowed)  # row-major: pair p = (ents[p], tasks[p])
+    P = len(ents)
+    # Variables: x (one per allowed pair), then y (m). milp minimises, so negate the profit.
+    c = np.concatenate([cost[ents, tasks], -reward])
+    cols_x = np.arange(P)
+    # Σ_j x_ij ≤ 1
+    one_task = coo_matrix((np.ones(P), (ents, cols_x)), shape=(n, P + m))
+    # Σ_i min(s_ik, d_jk) x_ij − d_jk y_j ≥ 0, one row per (j, k)
+    useful = np.minimum(supply[ents], demand[tasks])  # (P, K)
+    rows = tasks[:, None] * K + np.arange(K)[None, :]
+    cover_x = coo_matrix((useful.ravel(), (rows.ravel(), np.repeat(cols_x, K))), shape=(m * K, P))
+    cover_y = coo_matrix((-demand.ravel(), (np.arange(m * K), np.repeat(np.arange(m), K))), shape=(m * K, m))
+    cover = hstack([cover_x, cover_y])
+    # x_ij − y_j ≤ 0
+    link = hstack([coo_matrix((np.ones(P), (cols_x, cols_x)), shape=(P, P)),
+                   coo_matrix((-np.ones(P), (cols_x, tasks)), shape=(P, m))])  # fmt: skip
+    constraints = [
+        LinearConstraint(one_task.tocsr(), -np.inf, 1.0),
+        LinearConstraint(cover.tocsr(), 0.0, np.inf),
+        LinearConstraint(link.tocsr(), -np.inf, 0.0),
+    ]
+    res = milp(
+        c,
+        constraints=constraints,
+        integrality=np.ones(P + m),
+        bounds=Bounds(0, 1),
+        options={"time_limit": time_limit, "mip_rel_gap": mip_rel_gap},
+    )
+    x = np.zeros((n, m), bool)
+    y = np.zeros(m, bool)
+    if res.x is not None:
+        y = np.round(res.x[P:]).astype(bool)
+        chosen = np.round(res.x[:P]).astype(bool) & y[tasks]
+        x[ents[chosen], tasks[chosen]] = True
+    return x, y, res
+
+
+class MILPAllocator(Allocator):
+    """The exact allocation of the current step among free entities and open tasks (:func:`max_profit_cover` over
+    every pair). It is the per-step upper reference: it ignores travel time, decay and future tasks.
 
     :param time_limit: HiGHS time limit per solve (seconds); the best allocation found is used when it is reached
     :param mip_rel_gap: relative optimality gap at which HiGHS stops
@@ -57,42 +115,11 @@ class MILPAllocator(Allocator):
         demand = obs["task_demand"][open_].astype(np.float64)  # (m, K)
         reward = obs["task_reward"][open_].astype(np.float64)
         cost = obs["pair_cost"][np.ix_(free, open_)].astype(np.float64)  # (n, m)
-        n, m, K = len(free), len(open_), supply.shape[1]
-        # Variables: x (n·m, row-major: x[i, j] at i·m + j), then y (m). milp minimises, so negate the profit.
-        c = np.concatenate([cost.ravel(), -reward])
-        rows_i = np.repeat(np.arange(n), m)
-        cols_x = np.arange(n * m)
-        # Σ_j x_ij ≤ 1
-        one_task = coo_matrix((np.ones(n * m), (rows_i, cols_x)), shape=(n, n * m + m))
-        # Σ_i min(s_ik, d_jk) x_ij − d_jk y_j ≥ 0, one row per (j, k)
-        useful = np.minimum(supply[:, None, :], demand[None, :, :])  # (n, m, K)
-        r = (np.arange(m)[None, :, None] * K + np.arange(K)[None, None, :]).repeat(n, 0)  # row (j, k)
-        x_cols = np.broadcast_to(cols_x.reshape(n, m, 1), (n, m, K))
-        cover_x = coo_matrix((useful.ravel(), (r.ravel(), x_cols.ravel())), shape=(m * K, n * m))
-        cover_y = coo_matrix((-demand.ravel(), (np.arange(m * K), np.repeat(np.arange(m), K))), shape=(m * K, m))
-        cover = hstack([cover_x, cover_y])
-        # x_ij − y_j ≤ 0
-        link = hstack([coo_matrix((np.ones(n * m), (cols_x, cols_x)), shape=(n * m, n * m)),
-                       coo_matrix((-np.ones(n * m), (cols_x, np.tile(np.arange(m), n))), shape=(n * m, m))])  # fmt: skip
-        constraints = [
-            LinearConstraint(one_task.tocsr(), -np.inf, 1.0),
-            LinearConstraint(cover.tocsr(), 0.0, np.inf),
-            LinearConstraint(link.tocsr(), -np.inf, 0.0),
-        ]
         t0 = time.perf_counter()
-        res = milp(
-            c,
-            constraints=constraints,
-            integrality=np.ones(n * m + m),
-            bounds=Bounds(0, 1),
-            options={"time_limit": self.time_limit, "mip_rel_gap": self.mip_rel_gap},
-        )
+        x, y, res = max_profit_cover(supply, demand, reward, cost, time_limit=self.time_limit, mip_rel_gap=self.mip_rel_gap)
         seconds = time.perf_counter() - t0
         objective = 0.0
         if res.x is not None:
-            x = np.round(res.x[: n * m]).reshape(n, m).astype(bool)
-            y = np.round(res.x[n * m :]).astype(bool)
-            x &= y[None, :]
             ents, tasks = np.nonzero(x)
             action[free[ents]] = open_[tasks]
             objective = float(reward @ y - (cost * x).sum())

@@ -20,6 +20,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCateg
 from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
 from sb3_taskalloc.two_stage_sac.select_stage import (
+    cover_search,
     round_profit,
     sampled_search,
     select_search,
@@ -311,7 +312,7 @@ class SelectSearchLoss(NamedTuple):
 
 
 def select_search_loss(
-    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float
+    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float, method: str = "sample"
 ) -> SelectSearchLoss:
     """Distillation of a select-stage search (implementation detail 18): per task of the stored first round, the best
     of its deterministic team and ``samples`` − 1 sampled teams by the task's profit (:func:`.select_search`); where it
@@ -320,11 +321,16 @@ def select_search_loss(
     :param candidates: (B, M, N) stored candidate sets of pre-assigned decisions
     :param samples: K, decodes per task including the deterministic one (1: the term is 0)
     :param temperature: T of the sampled decodes
+    :param method: ``"sample"``: the best of the K decodes; ``"exact"``: the exact most profitable cover of the task's
+        candidates instead (:func:`.cover_search`; ``samples`` and ``temperature`` are then unused)
     """
     (task_of,) = stored_rounds(candidates, preassign=True)
     head = selector.head
     with th.no_grad():
-        found = select_search(head, view, task_of, samples, temperature)
+        if method == "exact":
+            found = cover_search(head, view, task_of)
+        else:
+            found = select_search(head, view, task_of, samples, temperature)
         improved = found.profit > found.base
         has = candidates.any(-1) & view.task_mask
         gain = (found.profit - found.base)[has].mean() if bool(has.any()) else found.profit.new_zeros(())

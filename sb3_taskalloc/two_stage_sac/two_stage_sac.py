@@ -129,6 +129,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         (pre-assigning policies only)
     :param select_search_samples: decodes per task of that term, the deterministic one included
     :param select_search_temperature: temperature of that term's sampled decodes
+    :param select_search_method: how that term finds a better team: ``"sample"``, the best of the sampled decodes, or
+        ``"exact"``, the exact most profitable cover of the task's candidates (HiGHS, one solve per minibatch row on
+        the CPU; ``select_search_samples`` and ``select_search_temperature`` are then unused)
     :param counterfactual_rate: share of the collection steps at which every env also steps a copy of itself with a
         second decision sampled at the same state (implementation detail 17, not in the paper; 0: off; the envs must
         live in this process, as in a ``DummyVecEnv``): the copy shares the env's random state, so both transitions
@@ -193,6 +196,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         select_search_coef: float = 0.0,
         select_search_samples: int = 16,
         select_search_temperature: float = 1.0,
+        select_search_method: str = "sample",
         counterfactual_rate: float = 0.0,
         counterfactual_batch_size: int = 32,
         counterfactual_coef: float = 0.0,
@@ -250,6 +254,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "reward_timing": (reward_timing, ("completion", "commitment")),
             "entropy_bonus": (entropy_bonus, ("sum", "mean")),
             "warmup_exploration": (warmup_exploration, ("uniform", "policy")),
+            "select_search_method": (select_search_method, ("sample", "exact")),
         }
         for name, (value, allowed) in choices.items():
             if value not in allowed:
@@ -290,6 +295,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.select_search_coef = float(select_search_coef)
         self.select_search_samples = select_search_samples
         self.select_search_temperature = float(select_search_temperature)
+        self.select_search_method = select_search_method
         if not (isinstance(counterfactual_rate, int | float) and 0.0 <= counterfactual_rate <= 1.0):
             raise ValueError(f"counterfactual_rate must be a share in [0, 1], got {counterfactual_rate!r}")
         self.counterfactual_rate = float(counterfactual_rate)
@@ -640,9 +646,14 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         if not actors_learn:
             return
         actor_loss = select.actor_loss
-        if self.select_search_coef > 0:  # each row costs select_search_samples decodes
+        if self.select_search_coef > 0:  # each row costs select_search_samples decodes, or a HiGHS solve
             found = losses.select_search_loss(
-                self.selector, view, replay_data.candidates[rows], self.select_search_samples, self.select_search_temperature
+                self.selector,
+                view,
+                replay_data.candidates[rows],
+                self.select_search_samples,
+                self.select_search_temperature,
+                self.select_search_method,
             )
             logs["select_search_loss"].append(found.loss.item())
             logs["select_search_improved"].append(found.improved.item())
