@@ -110,7 +110,10 @@ published code):
    T are scored by it; where the best team beats the deterministic one, the pointer's loss adds −λ_p·Σ_t log π(a*_t|s*_t)
    over that team's pick sequence (teacher-forced). The pointer decodes autoregressively, so unlike the factorised
    pre-assignment it can represent a joint choice such as the exact min-cost cover of its candidates; the unit-cost rule
-   it starts from spends more (on MT an exact cover of the same candidates returns about a fifth more).
+   it starts from spends more (on MT an exact cover of the same candidates returns about a fifth more, on RBF about
+   an eighth). ``select_search_method="exact"`` takes that cover itself as the better team: the per-step MILP's
+   formulation on the task's candidate pairs (one HiGHS solve per minibatch row), decoded by the pointer among the
+   cover's members alone so that the pick order taught is the pointer's own.
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
