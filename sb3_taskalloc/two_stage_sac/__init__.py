@@ -111,7 +111,7 @@ published code):
    over that team's pick sequence (teacher-forced). The pointer decodes autoregressively, so unlike the factorised
    pre-assignment it can represent a joint choice such as the exact min-cost cover of its candidates; the unit-cost rule
    it starts from spends more (on MT an exact cover of the same candidates returns about a fifth more, on RBF about
-   an eighth). ``select_search_method="exact"`` takes that cover itself as the better team: the per-step MILP's
+   a seventh). ``select_search_method="exact"`` takes that cover itself as the better team: the per-step MILP's
    formulation on the task's candidate pairs (one HiGHS solve per minibatch row), decoded by the pointer among the
    cover's members alone so that the pick order taught is the pointer's own.
 """
