@@ -712,7 +712,7 @@ def test_select_search_loss_distils_the_best_team():
     assert "train/select_search_improved" in model.logger.name_to_value
 
 
-def test_select_search_exact_finds_the_most_profitable_team_of_each_task():
+def test_select_search_exact_finds_the_most_profitable_team_of_each_task(monkeypatch: pytest.MonkeyPatch):
     """``select_search_method="exact"``: each task's team is the most profitable cover of its candidates (checked
     against every subset of them), never worse than the deterministic decode or a sampled search, decoded in an order
     that teacher forcing reproduces; the loss distils it where it beats the deterministic team."""
@@ -750,14 +750,24 @@ def test_select_search_exact_finds_the_most_profitable_team_of_each_task():
     th.testing.assert_close(tf.reward.sum(0)[improved], exact.profit[improved], atol=1e-4, rtol=1e-5)
     found = losses.select_search_loss(model.selector, view, candidates, samples=1, temperature=1.0, method="exact")
     assert float(found.loss.detach()) > 0 and float(found.improved) > 0
-    with pytest.raises(ValueError, match="select_search_method"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", select_search_method="best")
+    for bad in ({"select_search_method": "best"}, {"select_search_batch_size": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", **bad)
     model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/MT-v0", select_search_coef=1.0, select_search_method="exact", learning_starts=30,
-        batch_size=8, select_batch_size=4, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
+        "TAMPolicy", "TaskAlloc/MT-v0", select_search_coef=1.0, select_search_method="exact", select_search_batch_size=2,
+        learning_starts=30, batch_size=8, select_batch_size=4, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
     )  # fmt: skip
+    solved: list[int] = []
+    real = losses.select_search_loss
+
+    def counted(selector: object, view: ObsView, *args: object) -> object:
+        solved.append(len(view.reward))
+        return real(selector, view, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(losses, "select_search_loss", counted)
     model.learn(60)
     assert model.logger.name_to_value["train/select_search_improved"] >= 0
+    assert solved and set(solved) == {2}  # the term sees select_search_batch_size rows of the select minibatch
 
 
 def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():

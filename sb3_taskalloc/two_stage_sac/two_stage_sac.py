@@ -132,6 +132,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param select_search_method: how that term finds a better team: ``"sample"``, the best of the sampled decodes, or
         ``"exact"``, the exact most profitable cover of the task's candidates (HiGHS, one solve per minibatch row on
         the CPU; ``select_search_samples`` and ``select_search_temperature`` are then unused)
+    :param select_search_batch_size: rows of the select stage's minibatch used by that term (None: all
+        ``select_batch_size``; fewer bound the cost of the exact method's solves)
     :param counterfactual_rate: share of the collection steps at which every env also steps a copy of itself with a
         second decision sampled at the same state (implementation detail 17, not in the paper; 0: off; the envs must
         live in this process, as in a ``DummyVecEnv``): the copy shares the env's random state, so both transitions
@@ -197,6 +199,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         select_search_samples: int = 16,
         select_search_temperature: float = 1.0,
         select_search_method: str = "sample",
+        select_search_batch_size: int | None = None,
         counterfactual_rate: float = 0.0,
         counterfactual_batch_size: int = 32,
         counterfactual_coef: float = 0.0,
@@ -246,6 +249,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "search_batch_size": search_batch_size,
             "select_search_samples": select_search_samples,
             "counterfactual_batch_size": counterfactual_batch_size,
+            **({} if select_search_batch_size is None else {"select_search_batch_size": select_search_batch_size}),
         }
         for name, count in counts.items():
             if not (isinstance(count, int) and count >= 1):
@@ -296,6 +300,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         self.select_search_samples = select_search_samples
         self.select_search_temperature = float(select_search_temperature)
         self.select_search_method = select_search_method
+        self.select_search_batch_size = select_search_batch_size
         if not (isinstance(counterfactual_rate, int | float) and 0.0 <= counterfactual_rate <= 1.0):
             raise ValueError(f"counterfactual_rate must be a share in [0, 1], got {counterfactual_rate!r}")
         self.counterfactual_rate = float(counterfactual_rate)
@@ -647,10 +652,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             return
         actor_loss = select.actor_loss
         if self.select_search_coef > 0:  # each row costs select_search_samples decodes, or a HiGHS solve
+            n = self.select_search_batch_size or self.select_batch_size
             found = losses.select_search_loss(
                 self.selector,
-                view,
-                replay_data.candidates[rows],
+                ObsView(*(x[:n] for x in view)),
+                replay_data.candidates[rows][:n],
                 self.select_search_samples,
                 self.select_search_temperature,
                 self.select_search_method,
