@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import os
 
 import gymnasium as gym
 import numpy as np
@@ -79,6 +80,21 @@ def test_milp_is_optimal_on_small_instances(seed):
     assert value is not None, "the MILP allocation leaves a task uncovered"
     assert value == pytest.approx(milp.last.objective, abs=1e-4)
     assert value == pytest.approx(brute_force(obs), abs=1e-4)
+
+
+def test_highs_stdout_is_silenced_only_during_the_solve(capfd):
+    # HiGHS writes its stray MIP message to descriptor 1 from C, as os.write does here.
+    from sb3_taskalloc.baselines.milp import _highs_stdout_silenced
+
+    print("before", flush=False)
+    with _highs_stdout_silenced():
+        os.write(1, b"HighsMipSolverData::transformNewIntegerFeasibleSolution tmpSolver.run();\n")
+    os.write(1, b"after\n")
+    with pytest.raises(RuntimeError, match="inside"), _highs_stdout_silenced():
+        raise RuntimeError("inside")
+    print("restored")
+    out = capfd.readouterr().out
+    assert out.split() == ["before", "after", "restored"]
 
 
 @pytest.mark.parametrize("env_id", ["TaskAlloc/Almighty-v0", "TaskAlloc/EPT-v0"])

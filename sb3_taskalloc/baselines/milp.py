@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -10,6 +14,33 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from scipy.sparse import coo_matrix, hstack
 
 from sb3_taskalloc.baselines.base import Allocator
+
+
+@contextmanager
+def _highs_stdout_silenced() -> Iterator[None]:
+    """Point file descriptor 1 at the null device for the duration of a solve.
+
+    HiGHS's MIP solver prints ``HighsMipSolverData::transformNewIntegerFeasibleSolution tmpSolver.run();`` straight to the
+    C-level stdout on some solves, whatever its output options say; in training with ``select_search_method='exact'``
+    that is hundreds of lines a minute. The solve runs in the calling thread, so nothing else of the process writes in
+    between; Python's own buffer is flushed first so that nothing printed before is lost.
+    """
+    fd = 1
+    sys.stdout.flush()
+    try:
+        saved = os.dup(fd)
+    except OSError:  # no descriptor 1 to silence (a detached process)
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), fd)
+            try:
+                yield
+            finally:
+                os.dup2(saved, fd)
+    finally:
+        os.close(saved)
 
 
 @dataclass
@@ -68,13 +99,14 @@ def max_profit_cover(
         LinearConstraint(cover.tocsr(), 0.0, np.inf),
         LinearConstraint(link.tocsr(), -np.inf, 0.0),
     ]
-    res = milp(
-        c,
-        constraints=constraints,
-        integrality=np.ones(P + m),
-        bounds=Bounds(0, 1),
-        options={"time_limit": time_limit, "mip_rel_gap": mip_rel_gap},
-    )
+    with _highs_stdout_silenced():
+        res = milp(
+            c,
+            constraints=constraints,
+            integrality=np.ones(P + m),
+            bounds=Bounds(0, 1),
+            options={"time_limit": time_limit, "mip_rel_gap": mip_rel_gap},
+        )
     x = np.zeros((n, m), bool)
     y = np.zeros(m, bool)
     if res.x is not None:
