@@ -22,11 +22,12 @@ def _highs_stdout_silenced() -> Iterator[None]:
 
     HiGHS's MIP solver prints ``HighsMipSolverData::transformNewIntegerFeasibleSolution tmpSolver.run();`` straight to the
     C-level stdout on some solves, whatever its output options say; in training with ``select_search_method='exact'``
-    that is hundreds of lines a minute. The solve runs in the calling thread, so nothing else of the process writes in
-    between; Python's own buffer is flushed first so that nothing printed before is lost.
+    that is hundreds of lines a minute. Python's own buffer is flushed first, so nothing printed before is lost; what
+    another thread writes to descriptor 1 during the solve is dropped with it (the package prints nothing meanwhile).
     """
     fd = 1
-    sys.stdout.flush()
+    if sys.stdout is not None:
+        sys.stdout.flush()
     try:
         saved = os.dup(fd)
     except OSError:  # no descriptor 1 to silence (a detached process)
