@@ -523,3 +523,38 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
     model = TwoStageSAC.load(run.seed_path(0).with_name(run.seed_path(0).stem + "_best.zip"), device="cpu")
     assert np.mean(learn.episode_returns(model, run.env_id, validation)) == pytest.approx(values[best])
     assert learn.episode_returns(model, run.env_id, record["eval_seeds"]) == pytest.approx(record["best"])
+
+
+def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_path, monkeypatch):
+    """``select_dagger``: DAgger follows the training steps (or the saved model of the same run without it, which is
+    not trained again), the model before it is evaluated too, and its settings are part of the seed's digest."""
+    import json
+
+    from sb3_taskalloc.experiments import learn
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
+    plain = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                           out=tmp_path)  # fmt: skip
+    dagger = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                            out=tmp_path, select_dagger=2)  # fmt: skip
+    assert dagger.key != plain.key
+    base = plain.run_seed(0)
+    monkeypatch.setattr(learn.LearnRun, "_train", lambda *a: pytest.fail("the finished run without DAgger was trained again"))
+    calls: list[dict] = []
+    from sb3_taskalloc import TwoStageSAC
+
+    real = TwoStageSAC.distill_select
+
+    def counted(self, env, **kw):
+        calls.append(kw)
+        return real(self, env, **kw)
+
+    monkeypatch.setattr("sb3_taskalloc.TwoStageSAC.distill_select", counted)
+    text = dagger.run(progress=False).read_text()
+    assert calls == [{"iterations": 2, "seed": learn.dagger_seed(0)}]
+    assert "| untrained | trained | before DAgger | only actor learned |" in text and "--select-dagger 2" in text
+    (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
+    assert record["before_dagger"] == base["trained"] and record["untrained"] == base["untrained"]
+    assert record["curve"] == [list(p) for p in base["curve"]] and len(record["dagger"]) == 2
+    assert record["train_seconds"] == pytest.approx(base["train_seconds"] + record["dagger_seconds"])
+    assert learn.dagger_seed(0) > max(learn.validation_seeds(4, 100) + learn.eval_seeds(4, 100))

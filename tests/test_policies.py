@@ -193,6 +193,12 @@ def test_rounds_give_the_left_over_entities_the_untried_tasks():
     assert both.env_action.tolist() == [[2, 2, 1]]
     for field in ("candidates", "pick_rank", "kept"):
         assert th.equal(getattr(both, field), getattr(first, field))
+    rounds: list = []  # the states the select stage decoded: the second round sees task 1 alone
+    assert th.equal(two.decide(view, deterministic=True, rounds_out=rounds).env_action, both.env_action)
+    assert [task_of.tolist() for _, task_of in rounds] == [[[0, 0, 0]], [[1, 1, 1]]]
+    assert rounds[0][0] is view and rounds[1][0].task_mask.tolist() == [[False, True]]
+    with pytest.raises(ValueError, match="rounds_out needs a pre-assigning policy"):
+        make_policy(env, preassign=False).decide(view, deterministic=True, rounds_out=[])
     with pytest.raises(ValueError, match="rounds must be a positive integer"):
         make_policy(env, rounds=0)
     pooled = make_policy(env, rounds=2, preassign=False)  # tasks pick in turn from one pool: rounds do not apply

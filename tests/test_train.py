@@ -770,6 +770,55 @@ def test_select_search_exact_finds_the_most_profitable_team_of_each_task(monkeyp
     assert solved and set(solved) == {2}  # the term sees select_search_batch_size rows of the select minibatch
 
 
+def test_distill_select_teaches_the_pointer_the_exact_cover():
+    """:meth:`TwoStageSAC.distill_select` (implementation detail 19): its loss is −mean over the labelled tasks of the
+    teacher-forced log-likelihood of their teams; DAgger fits the pointer alone, raising the likelihood of the exact
+    covers of the rounds the deterministic policy meets, and is reproducible under a seed."""
+    env_id = "TaskAlloc/Almighty-v0"
+
+    def new_model() -> TwoStageSAC:
+        return TwoStageSAC("TAMPolicy", env_id, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+
+    model = new_model()
+    env = gym.make(env_id)
+    obs = [env.reset(seed=s)[0] for s in range(8)]
+    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    head = model.selector.head
+    rounds: list[tuple[ObsView, th.Tensor]] = []
+    with th.no_grad():
+        model.policy.decide(view, deterministic=True, rounds_out=rounds)
+        round_view, task_of = rounds[0]
+        found = cover_search(head, round_view, task_of)
+    M = found.profit.shape[1]
+    labelled = (task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)).any(-1) & (found.profit > 0)
+    assert bool(labelled.any()), "no task labelled: the case checks nothing"
+    log_p = losses.team_log_prob(head, round_view, task_of, found.rank)
+    assert log_p is not None
+    before = losses.cover_imitation_loss(head, round_view, task_of, found.rank, labelled)
+    th.testing.assert_close(before, -log_p[labelled].mean())
+    assert float(losses.cover_imitation_loss(head, round_view, task_of, found.rank, th.zeros_like(labelled))) == 0.0
+    frozen = {n: p.detach().clone() for n, p in model.policy.named_parameters() if not n.startswith("selector.")}
+    pointer = {n: p.detach().clone() for n, p in model.policy.named_parameters() if n.startswith("selector.")}
+    history = model.distill_select(env_id, iterations=2, episodes=8, epochs=4, seed=0)
+    assert [h["iteration"] for h in history] == [1.0, 2.0]
+    for h in history:
+        assert h["rounds"] >= 8 and h["labelled_tasks"] > 0 and 0.0 <= h["improved"] <= 1.0
+        assert h["gain"] >= -1e-6 and math.isfinite(h["loss"])  # the cover is never worse than the decode
+    for name, p in model.policy.named_parameters():
+        if name in frozen:
+            assert th.equal(p, frozen[name]), f"{name} changed: only the pointer learns"
+    assert any(not th.equal(p, pointer[n]) for n, p in model.policy.named_parameters() if n in pointer)
+    after = losses.cover_imitation_loss(head, round_view, task_of, found.rank, labelled)
+    assert float(after.detach()) < float(before.detach())
+    assert new_model().distill_select(env_id, iterations=2, episodes=8, epochs=4, seed=0) == history
+    for bad in ({"iterations": 0}, {"episodes": 0}, {"epochs": 1.5}, {"batch_size": 0}, {"learning_rate": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            model.distill_select(env_id, **bad)  # type: ignore[arg-type]
+    pooled = TwoStageSAC("TAMPolicy", env_id, device="cpu", policy_kwargs={"preassign": False, "hidden_dim": 16})
+    with pytest.raises(ValueError, match="pre-assigning policy"):
+        pooled.distill_select(env_id)
+
+
 def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():
     """``counterfactual_rate`` (implementation detail 17): at a branched step each env's copy takes a second sampled
     decision from the same state and the same random state, so where both decisions agree the two transitions are

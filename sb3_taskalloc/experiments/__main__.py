@@ -54,6 +54,10 @@ def main(argv: list[str] | None = None) -> None:
         default=0,
         help="curve on this many validation episodes per seed, and its best checkpoint evaluated too (0: off)",
     )
+    learn.add_argument(
+        "--select-dagger", type=int, default=0, metavar="N",
+        help="after the steps, N DAgger iterations teaching the pointer the exact cover of its candidates (0: off)",
+    )  # fmt: skip
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
     learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
     learn.add_argument("--out", default="results/learn")
@@ -79,12 +83,15 @@ def main(argv: list[str] | None = None) -> None:
             parser.error("--seeds, --steps, --eval-episodes, --eval-every and --jobs must be >= 1")
         if args.validation_episodes < 0:
             parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
+        if args.select_dagger < 0:
+            parser.error(f"--select-dagger must be >= 0, got {args.select_dagger}")
         planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
         unknown = set(planners) - set(PLANNERS)
         if unknown:
             parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
         run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
-                       out=args.out, validation_episodes=args.validation_episodes)  # fmt: skip
+                       out=args.out, validation_episodes=args.validation_episodes,
+                       select_dagger=args.select_dagger)  # fmt: skip
         if args.decision_samples < 1:
             parser.error(f"--decision-samples must be >= 1, got {args.decision_samples}")
         path = run.run(jobs=args.jobs)

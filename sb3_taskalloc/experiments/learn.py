@@ -24,6 +24,7 @@ by every run with the same ``--out``. The summary goes to ``<out>/<env>.md``,
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import time
 import warnings
@@ -78,6 +79,12 @@ def validation_seeds(seed: int, episodes: int) -> list[int]:
     """Reset seeds of the validation episodes of training seed ``seed``, which pick the best checkpoint
     (``LearnRun(validation_episodes)``): disjoint from the training seeds and from every held-out evaluation episode."""
     return [30_000 + 100 * seed + k for k in range(episodes)]
+
+
+def dagger_seed(seed: int) -> int:
+    """Reset seed of training seed ``seed``'s DAgger rollouts (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`): the
+    episodes run on from ``50_000 + 1000·seed``, clear of the held-out, diagnosis and validation episodes."""
+    return 50_000 + 1000 * seed
 
 
 def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable[[gym.Env], Any] | None = None) -> list[float]:
@@ -156,6 +163,10 @@ class LearnRun:
         (:func:`validation_seeds`, disjoint from the held-out ones) and the checkpoint of its best point after step 0
         is evaluated on the held-out episodes too (column "best on validation"); 0: the curve uses the first two
         held-out episodes and only the final model is evaluated
+    :param select_dagger: when > 0, after ``steps`` of TwoStageSAC the pointer is taught the exact cover of its
+        candidates by this many DAgger iterations (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`, 10 training
+        episodes each, reset seeds :func:`dagger_seed` on), and the model before it is evaluated too (column "before
+        DAgger"); the validation checkpoint, when kept, is the one before DAgger
     """
 
     env: str
@@ -168,6 +179,7 @@ class LearnRun:
     milp_time_limit: float = 2.0
     out: str | Path = "results/learn"
     validation_episodes: int = 0
+    select_dagger: int = 0
 
     @property
     def env_id(self) -> str:
@@ -183,6 +195,8 @@ class LearnRun:
         settings: tuple[Any, ...] = (self.steps, self.eval_episodes, self.eval_every, self.planners, self.milp_time_limit)
         if self.validation_episodes:  # appended only when set: the digests of runs without it stay valid
             settings += (self.validation_episodes,)
+        if self.select_dagger:
+            settings += (("select_dagger", self.select_dagger),)
         return config_key(env_settings(self.env_id), self.hyperparameters, settings)
 
     def seed_path(self, seed: int) -> Path:
@@ -193,10 +207,31 @@ class LearnRun:
         path = self.seed_path(seed)
         if path.exists():
             return self._complete(json.loads(path.read_text()), path)
-        from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
         seeds = eval_seeds(seed, self.eval_episodes)
+        found = self._finished_without_dagger(seed)
+        model, record = found if found is not None else self._train(seed, seeds, path)
+        if self.select_dagger:
+            record["before_dagger"] = episode_returns(model, self.env_id, seeds)
+            t0 = time.perf_counter()
+            record["dagger"] = model.distill_select(self.env_id, iterations=self.select_dagger, seed=dagger_seed(seed))
+            record["dagger_seconds"] = time.perf_counter() - t0
+            record["train_seconds"] += record["dagger_seconds"]
+        record["trained"] = episode_returns(model, self.env_id, seeds)
+        record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
+        record.update(self._diagnose(model, seed))
+        record.update(self.baselines(seed))
+        model.save(path.with_suffix(".zip"))
+        atomic_write_text(path, json.dumps(record) + "\n")
+        return record
+
+    def _train(self, seed: int, seeds: list[int], path: Path) -> tuple[Any, dict[str, Any]]:
+        """TwoStageSAC's ``steps`` on seed ``seed``, with the untrained return, the curve and the training time; with
+        validation episodes the checkpoint they pick is evaluated and saved (``<seed file>_best.zip``) here, before
+        anything that follows training. :return: the final model and its record so far"""
+        from sb3_taskalloc import TwoStageSAC
+
         env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
         model = TwoStageSAC("TAMPolicy", env, seed=seed, device="cpu", **hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
@@ -207,18 +242,29 @@ class LearnRun:
         t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
-        record["trained"] = episode_returns(model, self.env_id, seeds)
-        record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
         record["curve"] = curve.points
-        record.update(self._diagnose(model, seed))
-        record.update(self.baselines(seed))
-        model.save(path.with_suffix(".zip"))
         if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
+            final = copy.deepcopy(model.policy.state_dict())
             model.policy.load_state_dict(curve.best)
             record.update(best=episode_returns(model, self.env_id, seeds), best_step=curve.best_step)
             model.save(path.with_name(path.stem + "_best.zip"))
-        atomic_write_text(path, json.dumps(record) + "\n")
-        return record
+            model.policy.load_state_dict(final)
+        return model, record
+
+    def _finished_without_dagger(self, seed: int) -> tuple[Any, dict[str, Any]] | None:
+        """With ``select_dagger``, the same seed of the same run without DAgger when it finished in ``out`` with its
+        model: DAgger goes on from that model instead of training the same steps again. :return: the model and the
+        record of its training (untrained return, curve, training time, validation checkpoint), or None"""
+        if not self.select_dagger:
+            return None
+        base = dataclasses.replace(self, select_dagger=0).seed_path(seed)
+        if not (base.exists() and base.with_suffix(".zip").exists()):
+            return None
+        from sb3_taskalloc import TwoStageSAC
+
+        done = json.loads(base.read_text())
+        kept = ("seed", "eval_seeds", "untrained", "train_seconds", "curve", "best", "best_step")
+        return TwoStageSAC.load(base.with_suffix(".zip"), device="cpu"), {k: done[k] for k in kept if k in done}
 
     def _diagnose(self, model: Any, seed: int) -> dict[str, Any]:
         """The critic's calibration and the sampled return of the trained model (:func:`.diagnose.diagnose`)."""
@@ -316,7 +362,8 @@ class LearnRun:
 
         selected = ["best"] if all("best" in r for r in records) else []
         stages = ["actor_only", "pointer_only"] if all("actor_only" in r for r in records) else []
-        columns = ["untrained", "trained", *stages, *selected, "Greedy", "MILP", *self.planners]
+        dagger = ["before_dagger"] if all("before_dagger" in r for r in records) else []
+        columns = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP", *self.planners]
         means = {c: [float(np.mean(r[c])) for r in records] for c in columns}
         best_planner = max(self.planners, key=lambda p: float(np.mean(means[p]))) if self.planners else None
         stem = Path(self.out) / self.env
@@ -328,8 +375,10 @@ class LearnRun:
             f"{self.env_id}: deterministic return on {'validation' if self.validation_episodes else 'held-out'} episodes "
             "while training",
         )
-        shown = ["untrained", "trained", *stages, *selected, "Greedy", "MILP", *([best_planner] if best_planner else [])]
-        names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned"}
+        shown = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP"]
+        shown += [best_planner] if best_planner else []
+        names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned",
+                 "before_dagger": "before DAgger"}  # fmt: skip
         headers = [names.get(c, c) for c in shown]
         critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
         critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
@@ -347,6 +396,16 @@ class LearnRun:
                     "",
                 ]
                 if selected
+                else []
+            ),
+            *(
+                [
+                    f"Trained: {self.steps:,} steps of TwoStageSAC, then {self.select_dagger} DAgger iterations teaching "
+                    "the pointer the exact cover of its candidates (`TwoStageSAC.distill_select`); before DAgger: the "
+                    "model after the steps alone.",
+                    "",
+                ]
+                if dagger
                 else []
             ),
             *(
@@ -483,6 +542,7 @@ class LearnRun:
             "hyperparameters": self.hyperparameters,
             "planners": list(self.planners),
             "validation_episodes": self.validation_episodes,
+            "select_dagger": self.select_dagger,
             "key": self.key,
         }
 
@@ -491,6 +551,8 @@ class LearnRun:
         planners = " --planners " + (" ".join(self.planners) if self.planners else "none")
         if self.validation_episodes:
             planners += f" --validation-episodes {self.validation_episodes}"
+        if self.select_dagger:
+            planners += f" --select-dagger {self.select_dagger}"
         return (
             f"python -m sb3_taskalloc.experiments learn --env {self.env} --seeds {self.seeds} --steps {self.steps} "
             f"--eval-episodes {self.eval_episodes} --eval-every {self.eval_every}{planners}{extra}"

@@ -114,6 +114,14 @@ published code):
    a seventh). ``select_search_method="exact"`` takes that cover itself as the better team: the per-step MILP's
    formulation on the task's candidate pairs (one HiGHS solve per minibatch row), decoded by the pointer among the
    cover's members alone so that the pick order taught is the pointer's own.
+19. Select-stage DAgger (:meth:`TwoStageSAC.distill_select`, not in the paper): the exact cover of detail 18 as a
+   supervised teacher on the states the deployed policy reaches. Each iteration runs the deterministic policy for a
+   number of episodes, labels every decoding round it meets (every pre-assign round of every step) with each task's
+   better team of its deterministic decode and the exact cover, and fits the pointer alone, by several passes of Adam
+   over every label gathered so far, to −mean over the labelled tasks of Σ_t log π(a*_t|s*_t) (teacher-forced). A task
+   whose better team is not kept (profit ≤ 0) is not labelled. Inside ``train`` the same teacher meets the replayed
+   states of the sampled behaviour once each, beside the pointer's SAC loss; here it meets the deployed argmax's own
+   states (the distribution the deterministic policy is evaluated on) repeatedly, and the pointer fits its labels.
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

@@ -335,11 +335,38 @@ def select_search_loss(
         has = candidates.any(-1) & view.task_mask
         gain = (found.profit - found.base)[has].mean() if bool(has.any()) else found.profit.new_zeros(())
         share = improved[has].float().mean() if bool(has.any()) else found.profit.new_zeros(())
-    tf = teacher_forced(view, task_of, found.rank) if bool(improved.any()) else None
-    if tf is None:
+    log_p = team_log_prob(head, view, task_of, found.rank) if bool(improved.any()) else None
+    if log_p is None:
         return SelectSearchLoss(found.profit.new_zeros(()), share, gain)
-    M = candidates.shape[1]
+    return SelectSearchLoss(-log_p[improved].mean(), share, gain)
+
+
+def team_log_prob(head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> th.Tensor | None:
+    """(B, M) Σ_t log π(a_t|s_t) of each task's stored pick sequence under the pointer, teacher-forced
+    (:func:`.teacher_forced`; 0 for a task that picks nothing), or None when no task picks anything.
+
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param pick_rank: (B, M, N) step at which task j picks entity i (−1: not picked); every pick must be a valid choice
+        of its step, as a decode's are
+    """
+    tf = teacher_forced(view, task_of, pick_rank)
+    if tf is None:
+        return None
+    M = pick_rank.shape[1]
     logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
     dist = SegmentedCategorical(logits, tf.choices, tf.seg, M)
-    log_p = segment_sum(tf.picked * dist.log_probs, tf.seg, M).sum(0)  # (B, M): Σ_t log π of each task's picks
-    return SelectSearchLoss(-log_p[improved].mean(), share, gain)
+    return segment_sum(tf.picked * dist.log_probs, tf.seg, M).sum(0)
+
+
+def cover_imitation_loss(
+    head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, labelled: th.Tensor
+) -> th.Tensor:
+    """−mean over the labelled tasks of the log-probability of their labelled teams (:func:`team_log_prob`): the
+    supervised loss of :meth:`.TwoStageSAC.distill_select` (implementation detail 19).
+
+    :param labelled: (B, M) tasks whose team in ``pick_rank`` is a label
+    """
+    log_p = team_log_prob(head, view, task_of, pick_rank)
+    if log_p is None or not bool(labelled.any()):
+        return view.reward.new_zeros(())
+    return -log_p[labelled].mean()

@@ -396,18 +396,30 @@ class TAMPolicy(BasePolicy):
         """Decode the teams of every task of one round in parallel (see :func:`.select_stage.decode_round`)."""
         return decode_round(self.selector.head, view, task_of, deterministic, uniform)
 
-    def decide(self, view: ObsView, deterministic: bool = False, uniform: bool = False) -> Decision:
+    def decide(
+        self,
+        view: ObsView,
+        deterministic: bool = False,
+        uniform: bool = False,
+        rounds_out: list[tuple[ObsView, th.Tensor]] | None = None,
+    ) -> Decision:
         """Both stages on a batch of observations (paper Algorithm 1).
 
         :param view: parsed observations
         :param deterministic: argmax at both stages (else sample)
         :param uniform: uniform random choices at both stages (warm-up exploration)
+        :param rounds_out: when given, every pre-assign round appends its view and candidate sets ``task_of`` (B, N)
+            to it: the states the select stage decoded, which the first-round decision alone does not record
         """
         if self.preassign:
-            return self._decide_preassigned(view, deterministic, uniform)
+            return self._decide_preassigned(view, deterministic, uniform, rounds_out)
+        if rounds_out is not None:
+            raise ValueError("rounds_out needs a pre-assigning policy: without pre-assignment the tasks share one pool")
         return self._decide_pooled(view, deterministic, uniform)
 
-    def _decide_preassigned(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
+    def _decide_preassigned(
+        self, view: ObsView, deterministic: bool, uniform: bool, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None
+    ) -> Decision:
         """Stage 1 (Algorithm 2): every free entity samples one open task (candidate sets C_j); stage 2 (Algorithm 3):
         every task decodes its team from its own candidates, all in one round. With ``rounds`` > 1 the entities left
         over pre-assign again among the tasks not tried yet (see ``rounds``); the decision records the first round."""
@@ -428,6 +440,8 @@ class TAMPolicy(BasePolicy):
                 c = found.candidates
             else:
                 c = th.where(view.assignable, dist.get_actions(deterministic), -1)
+            if rounds_out is not None:
+                rounds_out.append((view, c))
             st = self.select_round(view, c, deterministic, uniform)
             candidates = c.unsqueeze(1) == tasks
             kept = st.kept()

@@ -8,11 +8,12 @@ import math
 import pathlib
 import warnings
 from collections import defaultdict
-from typing import Any, ClassVar, Literal, TypeVar
+from typing import Any, ClassVar, Literal, NamedTuple, TypeVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import ActionNoise
@@ -20,7 +21,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
 
 import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import (
@@ -38,6 +39,16 @@ from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
+
+
+class _CoverLabel(NamedTuple):
+    """One decoding round labelled for :meth:`TwoStageSAC.distill_select` (a batch row of one)."""
+
+    view: ObsView
+    task_of: th.Tensor  # (1, N) the round's candidate sets
+    rank: th.Tensor  # (1, M, N) each task's labelled team in pick order
+    labelled: th.Tensor  # (1, M) tasks whose team is a label
+
 
 #: Budget of ``learn()`` called without ``total_timesteps`` (env steps).
 DEFAULT_TOTAL_TIMESTEPS = 20_000
@@ -697,6 +708,134 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
         )
+
+    def distill_select(
+        self,
+        env: GymEnv | str,
+        iterations: int = 4,
+        episodes: int = 10,
+        epochs: int = 8,
+        learning_rate: float = 1e-3,
+        batch_size: int = 32,
+        seed: int | None = None,
+        progress_bar: bool = False,
+    ) -> list[dict[str, float]]:
+        """Teach the pointer the exact most profitable cover of its candidates by DAgger (implementation detail 19).
+
+        Each iteration runs the deterministic policy for ``episodes`` episodes on ``env``, labels every decoding round
+        it met (every pre-assign round of every step) with each task's better team of its deterministic decode and the
+        exact cover of its candidates (:func:`.select_stage.cover_search`), and fits the pointer alone, by
+        ``epochs`` passes of Adam over every label gathered so far, to the labelled teams (teacher-forced
+        log-likelihood). The pre-assign actor, the critics and the replay buffer are untouched; ``learn`` may go on
+        afterwards.
+
+        :param env: the env (or env id) of the rollouts; a VecEnv runs its copies in one batched decision
+        :param iterations: rollout-label-fit iterations
+        :param episodes: episodes rolled out per iteration (counted over all copies of a VecEnv)
+        :param epochs: passes over the labels per iteration
+        :param learning_rate: Adam's step size
+        :param batch_size: decoding rounds per gradient step
+        :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
+        :param progress_bar: show the rollout episodes with tqdm
+        :return: per iteration: the rollouts' mean return, the rounds met and the tasks labelled, the share of the tasks
+            with candidates whose exact cover beats the deterministic team and the mean profit gain over those tasks,
+            the last epoch's mean loss
+        """
+        from tqdm.auto import tqdm
+
+        if not self.policy.preassign:
+            raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
+        counts = {"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size}
+        for name, value in counts.items():
+            if not (isinstance(value, int | np.integer) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not learning_rate > 0:
+            raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
+        vec_env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)
+        check_spaces(vec_env.observation_space, vec_env.action_space)
+        if vec_env.observation_space != self.observation_space:
+            self.policy.check_transfer(vec_env.observation_space)  # type: ignore[arg-type]
+        if seed is not None:
+            vec_env.seed(seed)
+        optimizer = th.optim.Adam(self.policy.selector.head.parameters(), lr=learning_rate)
+        rng = np.random.default_rng(seed)
+        labels: list[_CoverLabel] = []
+        history: list[dict[str, float]] = []
+        obs = vec_env.reset()
+        with tqdm(total=iterations * episodes, desc="select-stage DAgger", disable=not progress_bar) as bar:
+            for it in range(iterations):
+                obs, stats = self._label_rollouts(vec_env, obs, episodes, labels, bar.update)
+                stats["loss"] = self._fit_labels(labels, optimizer, epochs, batch_size, rng)
+                history.append({"iteration": float(it + 1), **stats})
+                if self.verbose >= 1:
+                    print(f"select-stage DAgger {history[-1]}")
+        return history
+
+    def _label_rollouts(
+        self, vec_env: VecEnv, obs: Any, episodes: int, labels: list[_CoverLabel], done_episode: Any
+    ) -> tuple[Any, dict[str, float]]:
+        """DAgger's data (:meth:`distill_select`): ``episodes`` episodes of the deterministic policy, every decoding
+        round labelled with each task's better team of its decode and the exact cover (:func:`.cover_search`); each
+        batch row with a labelled task joins ``labels``. :return: the last observation, and the rollouts' figures"""
+        from sb3_taskalloc.two_stage_sac.select_stage import cover_search
+
+        self.policy.set_training_mode(False)
+        head = self.policy.selector.head
+        returns: list[float] = []
+        running = np.zeros(vec_env.num_envs)
+        totals = dict.fromkeys(("rounds", "tasks", "labelled_tasks", "improved", "gain"), 0.0)
+        while len(returns) < episodes:
+            rounds: list[tuple[ObsView, th.Tensor]] = []
+            with th.inference_mode():
+                view = self.policy.parse(self.policy.obs_to_tensor(obs)[0])
+                action = self.policy.decide(view, deterministic=True, rounds_out=rounds).env_action
+                for round_view, task_of in rounds:
+                    found = cover_search(head, round_view, task_of)
+                    slots = th.arange(found.profit.shape[1], device=task_of.device).view(1, -1, 1)
+                    has = (task_of.unsqueeze(1) == slots).any(-1)  # (B, M) tasks with candidates
+                    labelled = has & (found.profit > 0)  # a kept team: an abandoned decode teaches nothing
+                    totals["rounds"] += int(has.any(-1).sum())
+                    totals["tasks"] += int(has.sum())
+                    totals["labelled_tasks"] += int(labelled.sum())
+                    totals["improved"] += int((has & (found.profit > found.base)).sum())
+                    totals["gain"] += float((found.profit - found.base)[has].sum())
+                    for b in th.nonzero(labelled.any(-1)).flatten().tolist():
+                        rows = slice(b, b + 1)
+                        view_row = ObsView(*(x[rows].clone() for x in round_view))
+                        labels.append(_CoverLabel(view_row, task_of[rows].clone(), found.rank[rows].clone(), labelled[rows]))
+            obs, reward, done, _ = vec_env.step(action.cpu().numpy())
+            running += reward
+            for k in np.flatnonzero(done):
+                if len(returns) < episodes:
+                    returns.append(float(running[k]))
+                    done_episode(1)
+                running[k] = 0.0
+        tasks = max(totals.pop("tasks"), 1.0)
+        shares = {"improved": totals.pop("improved") / tasks, "gain": totals.pop("gain") / tasks}
+        return obs, {"mean_return": float(np.mean(returns)), **totals, **shares}
+
+    def _fit_labels(
+        self, labels: list[_CoverLabel], optimizer: th.optim.Optimizer, epochs: int, batch_size: int, rng: np.random.Generator
+    ) -> float:
+        """``epochs`` passes of ``optimizer`` over ``labels`` in random minibatches of the pointer's teacher-forced
+        log-likelihood (:func:`.losses.cover_imitation_loss`). :return: the last pass's mean loss"""
+        head = self.policy.selector.head
+        self.policy.set_training_mode(True)
+        epoch_losses: list[float] = []
+        for _ in range(epochs):
+            order = rng.permutation(len(labels))
+            epoch_losses = []
+            for start in range(0, len(order), batch_size):
+                batch = [labels[i] for i in order[start : start + batch_size]]
+                view = ObsView(*(th.cat(x, 0) for x in zip(*(b.view for b in batch), strict=True)))
+                task_of, rank, labelled = (th.cat([getattr(b, k) for b in batch], 0) for k in ("task_of", "rank", "labelled"))
+                loss = losses.cover_imitation_loss(head, view, task_of, rank, labelled)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                epoch_losses.append(loss.item())
+        self.policy.set_training_mode(False)
+        return float(np.mean(epoch_losses)) if epoch_losses else float("nan")
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach an env. With a size-agnostic policy the env may have other entity/task counts (zero-shot transfer):
