@@ -530,7 +530,9 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     not trained again), the model before it is evaluated too, and its settings are part of the seed's digest."""
     import json
 
+    from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments.__main__ import main
 
     kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
     plain = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
@@ -541,15 +543,13 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     base = plain.run_seed(0)
     monkeypatch.setattr(learn.LearnRun, "_train", lambda *a: pytest.fail("the finished run without DAgger was trained again"))
     calls: list[dict] = []
-    from sb3_taskalloc import TwoStageSAC
-
     real = TwoStageSAC.distill_select
 
     def counted(self, env, **kw):
         calls.append(kw)
         return real(self, env, **kw)
 
-    monkeypatch.setattr("sb3_taskalloc.TwoStageSAC.distill_select", counted)
+    monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
     text = dagger.run(progress=False).read_text()
     assert calls == [{"iterations": 2, "seed": learn.dagger_seed(0)}]
     assert "| untrained | trained | before DAgger | only actor learned |" in text and "--select-dagger 2" in text
@@ -558,3 +558,11 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     assert record["curve"] == [list(p) for p in base["curve"]] and len(record["dagger"]) == 2
     assert record["train_seconds"] == pytest.approx(base["train_seconds"] + record["dagger_seconds"])
     assert learn.dagger_seed(0) > max(learn.validation_seeds(4, 100) + learn.eval_seeds(4, 100))
+    # No training steps: DAgger alone, from the initial rule (the command line allows --steps 0 with --select-dagger).
+    monkeypatch.undo()
+    alone = learn.LearnRun("Almighty", 1, steps=0, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                           out=tmp_path / "alone", select_dagger=1)  # fmt: skip
+    record = alone.run_seed(0)
+    assert record["before_dagger"] == record["untrained"] and [p[0] for p in record["curve"]] == [0]
+    with pytest.raises(SystemExit):
+        main(["learn", "--env", "Almighty", "--steps", "0", "--out", str(tmp_path / "cli")])

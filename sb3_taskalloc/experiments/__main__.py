@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> None:
     learn = sub.add_parser("learn", help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)")
     learn.add_argument("--env", required=True, choices=ENVS)
     learn.add_argument("--seeds", type=int, default=5)
-    learn.add_argument("--steps", type=int, default=20_000, help="training env steps per seed")
+    learn.add_argument("--steps", type=int, default=20_000, help="training env steps per seed (0: with --select-dagger only)")
     learn.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes per seed")
     learn.add_argument("--eval-every", type=int, default=2_000, help="env steps between the curve's evaluations")
     learn.add_argument(
@@ -79,8 +79,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "learn":
         from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
 
-        if min(args.seeds, args.steps, args.eval_episodes, args.eval_every, args.jobs) < 1:
-            parser.error("--seeds, --steps, --eval-episodes, --eval-every and --jobs must be >= 1")
+        if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
+            parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
+        if args.steps < (0 if args.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
+            parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
         if args.validation_episodes < 0:
             parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
         if args.select_dagger < 0:
