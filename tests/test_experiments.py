@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import multiprocessing as mp
 import os
 import re
@@ -536,18 +537,17 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
 
     kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
     plain = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
-                           out=tmp_path)  # fmt: skip
-    dagger = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
-                            out=tmp_path, select_dagger=2)  # fmt: skip
+                           out=tmp_path, validation_episodes=2)  # fmt: skip
+    dagger = dataclasses.replace(plain, select_dagger=2)
     assert dagger.key != plain.key
     base = plain.run_seed(0)
     monkeypatch.setattr(learn.LearnRun, "_train", lambda *a: pytest.fail("the finished run without DAgger was trained again"))
     calls: list[dict] = []
     real = TwoStageSAC.distill_select
 
-    def counted(self, env, **kw):
+    def counted(self, env, callback, **kw):
         calls.append(kw)
-        return real(self, env, **kw)
+        return real(self, env, callback=callback, **kw)
 
     monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
     text = dagger.run(progress=False).read_text()
@@ -555,7 +555,11 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     assert "| untrained | trained | before DAgger | only actor learned |" in text and "--select-dagger 2" in text
     (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
     assert record["before_dagger"] == base["trained"] and record["untrained"] == base["untrained"]
-    assert record["curve"] == [list(p) for p in base["curve"]] and len(record["dagger"]) == 2
+    # The curve goes on through DAgger, one point after each iteration at the env steps of its rollouts (one-step
+    # episodes: 10 per iteration), on the validation episodes, where a better point would become the best checkpoint.
+    assert record["curve"][:3] == [list(p) for p in base["curve"]] and len(record["dagger"]) == 2
+    assert [p[0] for p in record["curve"][3:]] == [16, 26]
+    assert record["best_step"] == base["best_step"] or record["best_step"] in (16, 26)
     assert record["train_seconds"] == pytest.approx(base["train_seconds"] + record["dagger_seconds"])
     assert learn.dagger_seed(0) > max(learn.validation_seeds(4, 100) + learn.eval_seeds(4, 100))
     # No training steps: DAgger alone, from the initial rule (the command line allows --steps 0 with --select-dagger).
@@ -563,6 +567,6 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     alone = learn.LearnRun("Almighty", 1, steps=0, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
                            out=tmp_path / "alone", select_dagger=1)  # fmt: skip
     record = alone.run_seed(0)
-    assert record["before_dagger"] == record["untrained"] and [p[0] for p in record["curve"]] == [0]
+    assert record["before_dagger"] == record["untrained"] and [p[0] for p in record["curve"]] == [0, 10]
     with pytest.raises(SystemExit):
         main(["learn", "--env", "Almighty", "--steps", "0", "--out", str(tmp_path / "cli")])

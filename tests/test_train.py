@@ -802,7 +802,7 @@ def test_distill_select_teaches_the_pointer_the_exact_cover():
     history = model.distill_select(env_id, iterations=2, episodes=8, epochs=4, seed=0)
     assert [h["iteration"] for h in history] == [1.0, 2.0]
     for h in history:
-        assert h["rounds"] >= 8 and h["labelled_tasks"] > 0 and 0.0 <= h["improved"] <= 1.0
+        assert h["steps"] == 8 and h["rounds"] >= 8 and h["labelled_tasks"] > 0 and 0.0 <= h["improved"] <= 1.0
         assert h["gain"] >= -1e-6 and math.isfinite(h["loss"])  # the cover is never worse than the decode
     for name, p in model.policy.named_parameters():
         if name in frozen:
@@ -811,6 +811,14 @@ def test_distill_select_teaches_the_pointer_the_exact_cover():
     after = losses.cover_imitation_loss(head, round_view, task_of, found.rank, labelled)
     assert float(after.detach()) < float(before.detach())
     assert new_model().distill_select(env_id, iterations=2, episodes=8, epochs=4, seed=0) == history
+    seen: list[dict[str, float]] = []
+
+    def stop_after_one(stats: dict[str, float]) -> bool:  # a callback sees each iteration's figures; False stops there
+        seen.append(stats)
+        return False
+
+    stopped = new_model().distill_select(env_id, iterations=3, episodes=8, epochs=4, seed=0, callback=stop_after_one)
+    assert stopped == seen == history[:1]
     for bad in ({"iterations": 0}, {"episodes": 0}, {"epochs": 1.5}, {"batch_size": 0}, {"learning_rate": 0.0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             model.distill_select(env_id, **bad)  # type: ignore[arg-type]

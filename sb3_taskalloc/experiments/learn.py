@@ -130,11 +130,15 @@ class Curve(BaseCallback):
         self.best_step = 0
 
     def _evaluate(self) -> None:
+        self.evaluate_at(self.num_timesteps)
+
+    def evaluate_at(self, step: int) -> None:
+        """Add the point of ``step`` (training that goes on outside ``learn``, e.g. DAgger's rollouts, counts its own)."""
         value = float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))
-        if self.keep_best and self.num_timesteps > 0 and value > max((v for t, v in self.points if t > 0), default=-np.inf):
+        if self.keep_best and step > 0 and value > max((v for t, v in self.points if t > 0), default=-np.inf):
             self.best = copy.deepcopy(self.model.policy.state_dict())
-            self.best_step = self.num_timesteps
-        self.points.append((self.num_timesteps, value))
+            self.best_step = step
+        self.points.append((step, value))
 
     def _on_training_start(self) -> None:
         self._evaluate()
@@ -211,13 +215,12 @@ class LearnRun:
 
         seeds = eval_seeds(seed, self.eval_episodes)
         found = self._finished_without_dagger(seed)
-        model, record = found if found is not None else self._train(seed, seeds, path)
+        model, record, curve = found if found is not None else self._train(seed, seeds)
+        if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
+            self._evaluate_best(model, curve, record, path)
         if self.select_dagger:
-            record["before_dagger"] = episode_returns(model, self.env_id, seeds)
-            t0 = time.perf_counter()
-            record["dagger"] = model.distill_select(self.env_id, iterations=self.select_dagger, seed=dagger_seed(seed))
-            record["dagger_seconds"] = time.perf_counter() - t0
-            record["train_seconds"] += record["dagger_seconds"]
+            self._dagger(model, seed, record, curve, path)
+        record["curve"] = curve.points
         record["trained"] = episode_returns(model, self.env_id, seeds)
         record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
         record.update(self._diagnose(model, seed))
@@ -226,35 +229,59 @@ class LearnRun:
         atomic_write_text(path, json.dumps(record) + "\n")
         return record
 
-    def _train(self, seed: int, seeds: list[int], path: Path) -> tuple[Any, dict[str, Any]]:
-        """TwoStageSAC's ``steps`` on seed ``seed``, with the untrained return, the curve and the training time; with
-        validation episodes the checkpoint they pick is evaluated and saved (``<seed file>_best.zip``) here, before
-        anything that follows training. :return: the final model and its record so far"""
+    def _curve(self, seed: int) -> Curve:
+        if self.validation_episodes:
+            return Curve(self.env_id, validation_seeds(seed, self.validation_episodes), self.eval_every, keep_best=True)
+        return Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
+
+    def _train(self, seed: int, seeds: list[int]) -> tuple[Any, dict[str, Any], Curve]:
+        """TwoStageSAC's ``steps`` on seed ``seed``. :return: the final model, its record so far (the untrained return
+        and the training time) and the curve"""
         from sb3_taskalloc import TwoStageSAC
 
         env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
         model = TwoStageSAC("TAMPolicy", env, seed=seed, device="cpu", **hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
-        if self.validation_episodes:
-            curve = Curve(self.env_id, validation_seeds(seed, self.validation_episodes), self.eval_every, keep_best=True)
-        else:
-            curve = Curve(self.env_id, eval_seeds(seed, 2), self.eval_every)
+        curve = self._curve(seed)
         t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
-        record["curve"] = curve.points
-        if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
-            final = copy.deepcopy(model.policy.state_dict())
-            model.policy.load_state_dict(curve.best)
-            record.update(best=episode_returns(model, self.env_id, seeds), best_step=curve.best_step)
-            model.save(path.with_name(path.stem + "_best.zip"))
-            model.policy.load_state_dict(final)
-        return model, record
+        return model, record, curve
 
-    def _finished_without_dagger(self, seed: int) -> tuple[Any, dict[str, Any]] | None:
+    def _evaluate_best(self, model: Any, curve: Curve, record: dict[str, Any], path: Path) -> None:
+        """The curve's best checkpoint on the held-out episodes (``best``, ``best_step``), saved as
+        ``<seed file>_best.zip``; the model keeps its own weights."""
+        final = copy.deepcopy(model.policy.state_dict())
+        model.policy.load_state_dict(curve.best)
+        record.update(best=episode_returns(model, self.env_id, record["eval_seeds"]), best_step=curve.best_step)
+        model.save(path.with_name(path.stem + "_best.zip"))
+        model.policy.load_state_dict(final)
+        curve.best = None  # evaluated: a later best replaces it
+
+    def _dagger(self, model: Any, seed: int, record: dict[str, Any], curve: Curve, path: Path) -> None:
+        """``select_dagger`` iterations of :meth:`~sb3_taskalloc.TwoStageSAC.distill_select`, the curve measured after
+        each at the env steps of its rollouts (after the training steps); a better point on the validation episodes
+        replaces the best checkpoint."""
+        record["before_dagger"] = episode_returns(model, self.env_id, record["eval_seeds"])
+        steps = [self.steps]
+
+        def point(stats: dict[str, float]) -> None:
+            steps[0] += int(stats["steps"])
+            curve.evaluate_at(steps[0])
+
+        t0 = time.perf_counter()
+        record["dagger"] = model.distill_select(
+            self.env_id, iterations=self.select_dagger, seed=dagger_seed(seed), callback=point
+        )
+        record["dagger_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
+        record["train_seconds"] += record["dagger_seconds"]
+        if curve.best is not None:
+            self._evaluate_best(model, curve, record, path)
+
+    def _finished_without_dagger(self, seed: int) -> tuple[Any, dict[str, Any], Curve] | None:
         """With ``select_dagger``, the same seed of the same run without DAgger when it finished in ``out`` with its
-        model: DAgger goes on from that model instead of training the same steps again. :return: the model and the
-        record of its training (untrained return, curve, training time, validation checkpoint), or None"""
+        model: DAgger goes on from that model instead of training the same steps again. :return: the model, the
+        record of its training (untrained return, training time, validation checkpoint) and its curve, or None"""
         if not self.select_dagger:
             return None
         base = dataclasses.replace(self, select_dagger=0).seed_path(seed)
@@ -263,8 +290,15 @@ class LearnRun:
         from sb3_taskalloc import TwoStageSAC
 
         done = json.loads(base.read_text())
-        kept = ("seed", "eval_seeds", "untrained", "train_seconds", "curve", "best", "best_step")
-        return TwoStageSAC.load(base.with_suffix(".zip"), device="cpu"), {k: done[k] for k in kept if k in done}
+        model = TwoStageSAC.load(base.with_suffix(".zip"), device="cpu")
+        curve = self._curve(seed)
+        curve.model, curve.points, curve.best_step = (
+            model,
+            [(int(t), float(v)) for t, v in done["curve"]],
+            done.get("best_step", 0),
+        )
+        kept = ("seed", "eval_seeds", "untrained", "train_seconds", "best", "best_step")
+        return model, {k: done[k] for k in kept if k in done}, curve
 
     def _diagnose(self, model: Any, seed: int) -> dict[str, Any]:
         """The critic's calibration and the sampled return of the trained model (:func:`.diagnose.diagnose`)."""
@@ -374,6 +408,7 @@ class LearnRun:
             stem.with_suffix(".png"),
             f"{self.env_id}: deterministic return on {'validation' if self.validation_episodes else 'held-out'} episodes "
             "while training",
+            marks={f"DAgger ({self.select_dagger} iterations) from here": self.steps} if dagger else None,
         )
         shown = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP"]
         shown += [best_planner] if best_planner else []

@@ -120,11 +120,16 @@ def plot_almighty(curves: Mapping[str, list[list[tuple[int, float]]]], path: str
 
 
 def plot_learning_progress(
-    curves: Mapping[int, list[tuple[int, float]]], baselines: Mapping[str, float], path: str | Path, title: str = ""
+    curves: Mapping[int, list[tuple[int, float]]],
+    baselines: Mapping[str, float],
+    path: str | Path,
+    title: str = "",
+    marks: Mapping[str, float] | None = None,
 ) -> Path:
     """Deterministic return against env steps: one faint line per seed, their mean, and horizontal baselines.
 
     :param curves: seed -> (step, return) points
+    :param marks: label -> env step of a vertical line (where a phase of training begins)
     """
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -142,6 +147,8 @@ def plot_learning_progress(
         )
     for k, (name, value) in enumerate(baselines.items()):
         ax.axhline(value, color=f"C{k + 1}", ls="--", lw=1.5, label=f"{name} ({value:.1f})")
+    for name, step in (marks or {}).items():
+        ax.axvline(step, color="grey", ls=":", lw=1.5, label=name)
     ax.set_xlabel("env steps")
     ax.set_ylabel("deterministic return")
     ax.set_title(title)

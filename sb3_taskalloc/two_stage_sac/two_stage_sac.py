@@ -8,6 +8,7 @@ import math
 import pathlib
 import warnings
 from collections import defaultdict
+from collections.abc import Callable
 from typing import Any, ClassVar, Literal, NamedTuple, TypeVar
 
 import numpy as np
@@ -719,6 +720,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         batch_size: int = 32,
         seed: int | None = None,
         progress_bar: bool = False,
+        callback: Callable[[dict[str, float]], bool | None] | None = None,
     ) -> list[dict[str, float]]:
         """Teach the pointer the exact most profitable cover of its candidates by DAgger (implementation detail 19).
 
@@ -737,9 +739,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         :param batch_size: decoding rounds per gradient step
         :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
         :param progress_bar: show the rollout episodes with tqdm
-        :return: per iteration: the rollouts' mean return, the rounds met and the tasks labelled, the share of the tasks
-            with candidates whose exact cover beats the deterministic team and the mean profit gain over those tasks,
-            the last epoch's mean loss
+        :param callback: called with each iteration's figures after its fit (an evaluation, a checkpoint); ``False``
+            stops DAgger there, as a callback's ``False`` stops ``learn``
+        :return: per iteration: the rollouts' mean return and env steps, the rounds met and the tasks labelled, the
+            share of the tasks with candidates whose exact cover beats the deterministic team and the mean profit gain
+            over those tasks, the last epoch's mean loss
         """
         from tqdm.auto import tqdm
 
@@ -769,6 +773,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 history.append({"iteration": float(it + 1), **stats})
                 if self.verbose >= 1:
                     print(f"select-stage DAgger {history[-1]}")
+                if callback is not None and callback(history[-1]) is False:
+                    break
         return history
 
     def _label_rollouts(
@@ -783,7 +789,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         head = self.policy.selector.head
         returns: list[float] = []
         running = np.zeros(vec_env.num_envs)
-        totals = dict.fromkeys(("rounds", "tasks", "labelled_tasks", "improved", "gain"), 0.0)
+        totals = dict.fromkeys(("steps", "rounds", "tasks", "labelled_tasks", "improved", "gain"), 0.0)
         while len(returns) < episodes:
             rounds: list[tuple[ObsView, th.Tensor]] = []
             with th.inference_mode():
@@ -804,6 +810,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                         view_row = ObsView(*(x[rows].clone() for x in round_view))
                         labels.append(_CoverLabel(view_row, task_of[rows].clone(), found.rank[rows].clone(), labelled[rows]))
             obs, reward, done, _ = vec_env.step(action.cpu().numpy())
+            totals["steps"] += vec_env.num_envs
             running += reward
             for k in np.flatnonzero(done):
                 if len(returns) < episodes:
