@@ -819,12 +819,51 @@ def test_distill_select_teaches_the_pointer_the_exact_cover():
 
     stopped = new_model().distill_select(env_id, iterations=3, episodes=8, epochs=4, seed=0, callback=stop_after_one)
     assert stopped == seen == history[:1]
-    for bad in ({"iterations": 0}, {"episodes": 0}, {"epochs": 1.5}, {"batch_size": 0}, {"learning_rate": 0.0}):
+    assert len(new_model().distill_select(env_id, iterations=1, episodes=4, epochs=2, imitation="set", seed=0)) == 1
+    bad_arguments = ({"iterations": 0}, {"episodes": 0}, {"epochs": 1.5}, {"batch_size": 0}, {"learning_rate": 0.0})
+    for bad in (*bad_arguments, {"imitation": "team"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             model.distill_select(env_id, **bad)  # type: ignore[arg-type]
     pooled = TwoStageSAC("TAMPolicy", env_id, device="cpu", policy_kwargs={"preassign": False, "hidden_dim": 16})
     with pytest.raises(ValueError, match="pre-assigning policy"):
         pooled.distill_select(env_id)
+
+
+def test_cover_imitation_loss_as_a_set():
+    """``imitation="set"``: at each step of the labelled order the loss takes the probability of picking any member of
+    the cover not picked yet, recomputed here by stepping a :class:`SelectState` through the labelled picks; it is never
+    above the sequence loss, which takes the labelled pick's own probability."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/MT-v0")
+    obs = [env.reset(seed=s)[0] for s in range(8)]
+    round_view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    head = model.selector.head
+    B, N, M = round_view.pair_cost.shape
+    with th.no_grad():
+        task_of = th.where(round_view.assignable, model.actor(round_view).get_actions(True), -1)
+        found = cover_search(head, round_view, task_of)
+    labelled = (task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)).any(-1) & (found.profit > 0)
+    assert bool((((found.rank >= 0).sum(-1) > 1) & labelled).any()), "no labelled team of two or more: the set is the pick"
+    before = losses.cover_imitation_loss(head, round_view, task_of, found.rank, labelled)
+    # As a set: at each step of the labelled order, the probability of any member not picked yet, recomputed by stepping
+    # a SelectState through the labelled picks; never below the labelled pick's own probability.
+    as_set = losses.cover_imitation_loss(head, round_view, task_of, found.rank, labelled, as_set=True)
+    st, d = SelectState(round_view, task_of), head.embed_entities(round_view)
+    set_log_p = th.zeros(B, M)
+    for t in range(N):
+        if not bool(st.active.any()):
+            break
+        task_state, dyn = st.features()
+        logits = head(d, task_state, dyn, task_of).unsqueeze(1).masked_fill(~st.choice_mask(), NEG)  # (B, M, N)
+        hit = found.rank == t
+        picks, valid = hit.float().argmax(-1), hit.any(-1) & st.active
+        remaining = (found.rank >= t) & st.choice_mask()
+        p_set = (th.softmax(logits, -1) * remaining.float()).sum(-1)
+        set_log_p = set_log_p + th.where(valid, p_set.clamp_min(1e-12).log(), 0.0)
+        st.advance(picks, valid)
+    th.testing.assert_close(as_set, -set_log_p[labelled].mean(), atol=1e-4, rtol=1e-5)
+    assert float(as_set.detach()) <= float(before.detach()) + 1e-6
+    assert float(losses.cover_imitation_loss(head, round_view, task_of, found.rank, th.zeros_like(labelled), True)) == 0.0
 
 
 def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():

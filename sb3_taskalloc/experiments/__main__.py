@@ -58,6 +58,10 @@ def main(argv: list[str] | None = None) -> None:
         "--select-dagger", type=int, default=0, metavar="N",
         help="after the steps, N DAgger iterations teaching the pointer the exact cover of its candidates (0: off)",
     )  # fmt: skip
+    learn.add_argument(
+        "--dagger-imitation", choices=("sequence", "set"), default="sequence",
+        help="DAgger's loss: each labelled pick in the label's order, or any member of the cover not picked yet",
+    )  # fmt: skip
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
     learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
     learn.add_argument("--out", default="results/learn")
@@ -93,7 +97,7 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
         run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                        out=args.out, validation_episodes=args.validation_episodes,
-                       select_dagger=args.select_dagger)  # fmt: skip
+                       select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation)  # fmt: skip
         if args.decision_samples < 1:
             parser.error(f"--decision-samples must be >= 1, got {args.decision_samples}")
         path = run.run(jobs=args.jobs)

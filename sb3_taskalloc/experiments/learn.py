@@ -170,7 +170,9 @@ class LearnRun:
     :param select_dagger: when > 0, after ``steps`` of TwoStageSAC the pointer is taught the exact cover of its
         candidates by this many DAgger iterations (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`, 10 training
         episodes each, reset seeds :func:`dagger_seed` on), and the model before it is evaluated too (column "before
-        DAgger"); the validation checkpoint, when kept, is the one before DAgger
+        DAgger"); the curve goes on through DAgger, and a better point on the validation episodes replaces the best
+        checkpoint
+    :param dagger_imitation: DAgger's loss, ``"sequence"`` or ``"set"`` (``imitation`` of ``distill_select``)
     """
 
     env: str
@@ -184,6 +186,7 @@ class LearnRun:
     out: str | Path = "results/learn"
     validation_episodes: int = 0
     select_dagger: int = 0
+    dagger_imitation: str = "sequence"
 
     @property
     def env_id(self) -> str:
@@ -201,6 +204,8 @@ class LearnRun:
             settings += (self.validation_episodes,)
         if self.select_dagger:
             settings += (("select_dagger", self.select_dagger),)
+            if self.dagger_imitation != "sequence":  # appended only when set: the digests of earlier DAgger runs stay valid
+                settings += (("dagger_imitation", self.dagger_imitation),)
         return config_key(env_settings(self.env_id), self.hyperparameters, settings)
 
     def seed_path(self, seed: int) -> Path:
@@ -271,7 +276,7 @@ class LearnRun:
 
         t0 = time.perf_counter()
         record["dagger"] = model.distill_select(
-            self.env_id, iterations=self.select_dagger, seed=dagger_seed(seed), callback=point
+            self.env_id, iterations=self.select_dagger, imitation=self.dagger_imitation, seed=dagger_seed(seed), callback=point
         )
         record["dagger_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["train_seconds"] += record["dagger_seconds"]
@@ -578,6 +583,7 @@ class LearnRun:
             "planners": list(self.planners),
             "validation_episodes": self.validation_episodes,
             "select_dagger": self.select_dagger,
+            "dagger_imitation": self.dagger_imitation,
             "key": self.key,
         }
 
@@ -588,6 +594,7 @@ class LearnRun:
             planners += f" --validation-episodes {self.validation_episodes}"
         if self.select_dagger:
             planners += f" --select-dagger {self.select_dagger}"
+            planners += f" --dagger-imitation {self.dagger_imitation}" if self.dagger_imitation != "sequence" else ""
         return (
             f"python -m sb3_taskalloc.experiments learn --env {self.env} --seeds {self.seeds} --steps {self.steps} "
             f"--eval-episodes {self.eval_episodes} --eval-every {self.eval_every}{planners}{extra}"

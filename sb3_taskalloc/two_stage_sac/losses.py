@@ -21,6 +21,7 @@ from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectC
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
 from sb3_taskalloc.two_stage_sac.select_stage import (
     cover_search,
+    own_column,
     round_profit,
     sampled_search,
     select_search,
@@ -359,14 +360,37 @@ def team_log_prob(head: PointerHead, view: ObsView, task_of: th.Tensor, pick_ran
 
 
 def cover_imitation_loss(
-    head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, labelled: th.Tensor
+    head: PointerHead,
+    view: ObsView,
+    task_of: th.Tensor,
+    pick_rank: th.Tensor,
+    labelled: th.Tensor,
+    as_set: bool = False,
 ) -> th.Tensor:
-    """−mean over the labelled tasks of the log-probability of their labelled teams (:func:`team_log_prob`): the
-    supervised loss of :meth:`.TwoStageSAC.distill_select` (implementation detail 19).
+    """The supervised loss of :meth:`.TwoStageSAC.distill_select` (implementation detail 19), −mean over the labelled
+    tasks of Σ_t log p_t along their labelled teams (teacher-forced), where p_t is
+
+    - the probability of the labelled pick a*_t (``as_set=False``; the sum is the team's :func:`team_log_prob`);
+    - the probability of picking any member of the team not picked yet, Σ_{i ∈ A*, rank(i) ≥ t} π_t(i) (``as_set=True``):
+      a cover is a set, and any of its remaining members is a right pick at step t, so the order the label happens to
+      list them in is not taught.
 
     :param labelled: (B, M) tasks whose team in ``pick_rank`` is a label
     """
-    log_p = team_log_prob(head, view, task_of, pick_rank)
-    if log_p is None or not bool(labelled.any()):
+    if not bool(labelled.any()):
         return view.reward.new_zeros(())
+    if not as_set:
+        log_p = team_log_prob(head, view, task_of, pick_rank)
+        return view.reward.new_zeros(()) if log_p is None else -log_p[labelled].mean()
+    tf = teacher_forced(view, task_of, pick_rank)
+    if tf is None:
+        return view.reward.new_zeros(())
+    M = pick_rank.shape[1]
+    logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
+    probs = SegmentedCategorical(logits, tf.choices, tf.seg, M).log_probs.exp()  # (T, B, N)
+    rank_own = th.where(task_of >= 0, own_column(pick_rank.transpose(1, 2), task_of), -1)  # (B, N)
+    steps = th.arange(probs.shape[0], device=probs.device).view(-1, 1, 1)
+    remaining = (rank_own >= steps) & tf.choices  # (T, B, N) members not picked before t
+    p_set = segment_sum(probs * remaining.float(), tf.seg, M)  # (T, B, M)
+    log_p = th.where(tf.valid, p_set.clamp_min(1e-12).log(), 0.0).sum(0)  # (B, M)
     return -log_p[labelled].mean()

@@ -718,6 +718,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         epochs: int = 8,
         learning_rate: float = 1e-3,
         batch_size: int = 32,
+        imitation: str = "sequence",
         seed: int | None = None,
         progress_bar: bool = False,
         callback: Callable[[dict[str, float]], bool | None] | None = None,
@@ -737,6 +738,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         :param epochs: passes over the labels per iteration
         :param learning_rate: Adam's step size
         :param batch_size: decoding rounds per gradient step
+        :param imitation: ``"sequence"``: the likelihood of each labelled pick in the label's order; ``"set"``: of
+            picking any member of the cover not picked yet (:func:`.losses.cover_imitation_loss`)
         :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
         :param progress_bar: show the rollout episodes with tqdm
         :param callback: called with each iteration's figures after its fit (an evaluation, a checkpoint); ``False``
@@ -755,6 +758,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if not learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
+        if imitation not in ("sequence", "set"):
+            raise ValueError(f"imitation must be 'sequence' or 'set', got {imitation!r}")
         vec_env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)
         check_spaces(vec_env.observation_space, vec_env.action_space)
         if vec_env.observation_space != self.observation_space:
@@ -769,7 +774,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         with tqdm(total=iterations * episodes, desc="select-stage DAgger", disable=not progress_bar) as bar:
             for it in range(iterations):
                 obs, stats = self._label_rollouts(vec_env, obs, episodes, labels, bar.update)
-                stats["loss"] = self._fit_labels(labels, optimizer, epochs, batch_size, rng)
+                stats["loss"] = self._fit_labels(labels, optimizer, epochs, batch_size, rng, imitation == "set")
                 history.append({"iteration": float(it + 1), **stats})
                 if self.verbose >= 1:
                     print(f"select-stage DAgger {history[-1]}")
@@ -822,7 +827,13 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         return obs, {"mean_return": float(np.mean(returns)), **totals, **shares}
 
     def _fit_labels(
-        self, labels: list[_CoverLabel], optimizer: th.optim.Optimizer, epochs: int, batch_size: int, rng: np.random.Generator
+        self,
+        labels: list[_CoverLabel],
+        optimizer: th.optim.Optimizer,
+        epochs: int,
+        batch_size: int,
+        rng: np.random.Generator,
+        as_set: bool = False,
     ) -> float:
         """``epochs`` passes of ``optimizer`` over ``labels`` in random minibatches of the pointer's teacher-forced
         log-likelihood (:func:`.losses.cover_imitation_loss`). :return: the last pass's mean loss"""
@@ -836,7 +847,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 batch = [labels[i] for i in order[start : start + batch_size]]
                 view = ObsView(*(th.cat(x, 0) for x in zip(*(b.view for b in batch), strict=True)))
                 task_of, rank, labelled = (th.cat([getattr(b, k) for b in batch], 0) for k in ("task_of", "rank", "labelled"))
-                loss = losses.cover_imitation_loss(head, view, task_of, rank, labelled)
+                loss = losses.cover_imitation_loss(head, view, task_of, rank, labelled, as_set)
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
