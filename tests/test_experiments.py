@@ -551,7 +551,7 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
 
     monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
     text = dagger.run(progress=False).read_text()
-    assert calls == [{"iterations": 2, "seed": learn.dagger_seed(0)}]
+    assert calls == [{"iterations": 2, "imitation": "sequence", "seed": learn.dagger_seed(0)}]
     assert "| untrained | trained | before DAgger | only actor learned |" in text and "--select-dagger 2" in text
     (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
     assert record["before_dagger"] == base["trained"] and record["untrained"] == base["untrained"]
