@@ -645,7 +645,7 @@ def test_preassign_search_loss_distils_the_best_sample():
     assert float(search.gain) == pytest.approx(np.mean(gains), abs=1e-4)
     search.loss.backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.actor.parameters())
-    assert float(losses.preassign_search_loss(model.actor(view), head, view, samples=1, temperature=4.0).loss) == 0.0
+    assert float(losses.preassign_search_loss(model.actor(view), head, view, samples=1, temperature=4.0).loss.detach()) == 0.0
     for bad in ({"search_coef": -1.0}, {"search_temperature": 0.0}, {"search_samples": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
