@@ -820,6 +820,9 @@ def test_distill_select_teaches_the_pointer_the_exact_cover():
     stopped = new_model().distill_select(env_id, iterations=3, episodes=8, epochs=4, seed=0, callback=stop_after_one)
     assert stopped == seen == history[:1]
     assert len(new_model().distill_select(env_id, iterations=1, episodes=4, epochs=2, imitation="set", seed=0)) == 1
+    # On a VecEnv the copies decide in one batch; episodes are counted over all of them.
+    (vec,) = new_model().distill_select(make_vec_env(env_id, n_envs=3), iterations=1, episodes=4, epochs=1, seed=0)
+    assert vec["steps"] == 6 and vec["rounds"] >= 6  # two batched steps of 3 one-step episodes
     bad_arguments = ({"iterations": 0}, {"episodes": 0}, {"epochs": 1.5}, {"batch_size": 0}, {"learning_rate": 0.0})
     for bad in (*bad_arguments, {"imitation": "team"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
