@@ -20,6 +20,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCateg
 from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
 from sb3_taskalloc.two_stage_sac.select_stage import (
+    TeacherForcedRound,
     cover_search,
     own_column,
     round_profit,
@@ -342,9 +343,11 @@ def select_search_loss(
     return SelectSearchLoss(-log_p[improved].mean(), share, gain)
 
 
-def team_log_prob(head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> th.Tensor | None:
-    """(B, M) Σ_t log π(a_t|s_t) of each task's stored pick sequence under the pointer, teacher-forced
-    (:func:`.teacher_forced`; 0 for a task that picks nothing), or None when no task picks anything.
+def pick_log_probs(
+    head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor
+) -> tuple[TeacherForcedRound, th.Tensor] | None:
+    """The teacher-forced states of a stored decoding round (:func:`.teacher_forced`) and the pointer's
+    log-probabilities (T, B, N) of every choice at each of them, or None when no task picks anything.
 
     :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param pick_rank: (B, M, N) step at which task j picks entity i (−1: not picked); every pick must be a valid choice
@@ -353,10 +356,18 @@ def team_log_prob(head: PointerHead, view: ObsView, task_of: th.Tensor, pick_ran
     tf = teacher_forced(view, task_of, pick_rank)
     if tf is None:
         return None
-    M = pick_rank.shape[1]
     logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
-    dist = SegmentedCategorical(logits, tf.choices, tf.seg, M)
-    return segment_sum(tf.picked * dist.log_probs, tf.seg, M).sum(0)
+    return tf, SegmentedCategorical(logits, tf.choices, tf.seg, pick_rank.shape[1]).log_probs
+
+
+def team_log_prob(head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> th.Tensor | None:
+    """(B, M) Σ_t log π(a_t|s_t) of each task's stored pick sequence under the pointer, teacher-forced
+    (:func:`pick_log_probs`; 0 for a task that picks nothing), or None when no task picks anything."""
+    found = pick_log_probs(head, view, task_of, pick_rank)
+    if found is None:
+        return None
+    tf, log_probs = found
+    return segment_sum(tf.picked * log_probs, tf.seg, pick_rank.shape[1]).sum(0)
 
 
 def cover_imitation_loss(
@@ -382,12 +393,12 @@ def cover_imitation_loss(
     if not as_set:
         log_p = team_log_prob(head, view, task_of, pick_rank)
         return view.reward.new_zeros(()) if log_p is None else -log_p[labelled].mean()
-    tf = teacher_forced(view, task_of, pick_rank)
-    if tf is None:
+    found = pick_log_probs(head, view, task_of, pick_rank)
+    if found is None:
         return view.reward.new_zeros(())
+    tf, log_probs = found
     M = pick_rank.shape[1]
-    logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
-    probs = SegmentedCategorical(logits, tf.choices, tf.seg, M).log_probs.exp()  # (T, B, N)
+    probs = log_probs.exp()  # (T, B, N)
     rank_own = th.where(task_of >= 0, own_column(pick_rank.transpose(1, 2), task_of), -1)  # (B, N)
     steps = th.arange(probs.shape[0], device=probs.device).view(-1, 1, 1)
     remaining = (rank_own >= steps) & tf.choices  # (T, B, N) members not picked before t

@@ -51,6 +51,20 @@ class _CoverLabel(NamedTuple):
     labelled: th.Tensor  # (1, M) tasks whose team is a label
 
 
+def _check_counts(counts: dict[str, Any]) -> None:
+    """A clear error for the first of ``counts`` (name -> value) that is not a positive integer."""
+    for name, count in counts.items():
+        if not (isinstance(count, int) and count >= 1):
+            raise ValueError(f"{name} must be a positive integer, got {count!r}")
+
+
+def _check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:
+    """A clear error for the first of ``choices`` (name -> (value, allowed values)) whose value is not allowed."""
+    for name, (value, allowed) in choices.items():
+        if value not in allowed:
+            raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
+
+
 #: Budget of ``learn()`` called without ``total_timesteps`` (env steps).
 DEFAULT_TOTAL_TIMESTEPS = 20_000
 
@@ -263,18 +277,15 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "counterfactual_batch_size": counterfactual_batch_size,
             **({} if select_search_batch_size is None else {"select_search_batch_size": select_search_batch_size}),
         }
-        for name, count in counts.items():
-            if not (isinstance(count, int) and count >= 1):
-                raise ValueError(f"{name} must be a positive integer, got {count!r}")
-        choices = {
-            "reward_timing": (reward_timing, ("completion", "commitment")),
-            "entropy_bonus": (entropy_bonus, ("sum", "mean")),
-            "warmup_exploration": (warmup_exploration, ("uniform", "policy")),
-            "select_search_method": (select_search_method, ("sample", "exact")),
-        }
-        for name, (value, allowed) in choices.items():
-            if value not in allowed:
-                raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
+        _check_counts(counts)
+        _check_choices(
+            {
+                "reward_timing": (reward_timing, ("completion", "commitment")),
+                "entropy_bonus": (entropy_bonus, ("sum", "mean")),
+                "warmup_exploration": (warmup_exploration, ("uniform", "policy")),
+                "select_search_method": (select_search_method, ("sample", "exact")),
+            }
+        )
         self.n_steps = n_steps
         if n_steps > 1:
             self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "n_steps": n_steps, "gamma": gamma}
@@ -752,14 +763,10 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
 
         if not self.policy.preassign:
             raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
-        counts = {"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size}
-        for name, value in counts.items():
-            if not (isinstance(value, int | np.integer) and value >= 1):
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        _check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
+        _check_choices({"imitation": (imitation, ("sequence", "set"))})
         if not learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
-        if imitation not in ("sequence", "set"):
-            raise ValueError(f"imitation must be 'sequence' or 'set', got {imitation!r}")
         vec_env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)
         check_spaces(vec_env.observation_space, vec_env.action_space)
         if vec_env.observation_space != self.observation_space:
@@ -847,11 +854,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 batch = [labels[i] for i in order[start : start + batch_size]]
                 view = ObsView(*(th.cat(x, 0) for x in zip(*(b.view for b in batch), strict=True)))
                 task_of, rank, labelled = (th.cat([getattr(b, k) for b in batch], 0) for k in ("task_of", "rank", "labelled"))
-                loss = losses.cover_imitation_loss(head, view, task_of, rank, labelled, as_set)
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                epoch_losses.append(loss.item())
+                epoch_losses.append(
+                    self._step(optimizer, losses.cover_imitation_loss(head, view, task_of, rank, labelled, as_set))
+                )
         self.policy.set_training_mode(False)
         return float(np.mean(epoch_losses)) if epoch_losses else float("nan")
 
