@@ -612,14 +612,27 @@ def test_preassign_profit_loss_closed_form():
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", profit_coef=-1.0)
 
 
+def reset_view(model: TwoStageSAC, env_id: str, n: int) -> ObsView:
+    """The first observations of reset seeds 0 .. n − 1 of ``env_id``, parsed by ``model``'s policy as one batch."""
+    env = gym.make(env_id)
+    obs = [env.reset(seed=s)[0] for s in range(n)]
+    return model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+
+
+def mt_argmax_round() -> tuple[TwoStageSAC, ObsView, th.Tensor]:
+    """A small untrained MT model, 8 reset states and its argmax pre-assignment ``task_of`` on them."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    view = reset_view(model, "TaskAlloc/MT-v0", 8)
+    with th.no_grad():
+        return model, view, th.where(view.assignable, model.actor(view).get_actions(True), -1)
+
+
 def test_preassign_search_loss_distils_the_best_sample():
     """The search term's target is the sampled pre-assignment with the highest step profit, the argmax where none beats
     it: recomputed here from the same samples, its loss is −Σ_i log π_i(c*_i) over the states it improves, and a step
     on it raises the log-probability of c*; with one sample (the argmax alone) the term is 0."""
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    env = gym.make("TaskAlloc/RBF-v0")
-    obs = [env.reset(seed=s)[0] for s in range(4)]
-    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    view = reset_view(model, "TaskAlloc/RBF-v0", 4)
     head = model.selector.head
     dist = model.actor(view)
     th.manual_seed(0)
@@ -655,14 +668,9 @@ def test_select_search_loss_distils_the_best_team():
     """``select_search_coef`` (implementation detail 18): per task, the search's team is at least as profitable as the
     deterministic one, its teacher-forced rewards add up to that profit, and the loss is −Σ_t log π(a*_t|s*_t) over the
     tasks it improves, recomputed here by stepping a :class:`SelectState` through the forced picks one at a time."""
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    env = gym.make("TaskAlloc/MT-v0")
-    obs = [env.reset(seed=s)[0] for s in range(8)]
-    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    model, view, task_of = mt_argmax_round()
     head = model.selector.head
     B, N, M = view.pair_cost.shape
-    with th.no_grad():
-        task_of = th.where(view.assignable, model.actor(view).get_actions(True), -1)
     candidates = task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)
     th.manual_seed(0)
     found = select_search(head, view, task_of, samples=32, temperature=3.0)
@@ -716,14 +724,10 @@ def test_select_search_exact_finds_the_most_profitable_team_of_each_task(monkeyp
     """``select_search_method="exact"``: each task's team is the most profitable cover of its candidates (checked
     against every subset of them), never worse than the deterministic decode or a sampled search, decoded in an order
     that teacher forcing reproduces; the loss distils it where it beats the deterministic team."""
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    env = gym.make("TaskAlloc/MT-v0")
-    obs = [env.reset(seed=s)[0] for s in range(8)]
-    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    model, view, task_of = mt_argmax_round()
     head = model.selector.head
     B, M = view.task_mask.shape
     with th.no_grad():
-        task_of = th.where(view.assignable, model.actor(view).get_actions(True), -1)
         exact = cover_search(head, view, task_of)
         th.manual_seed(0)
         sampled = select_search(head, view, task_of, samples=32, temperature=3.0)
@@ -780,9 +784,7 @@ def test_distill_select_teaches_the_pointer_the_exact_cover():
         return TwoStageSAC("TAMPolicy", env_id, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
 
     model = new_model()
-    env = gym.make(env_id)
-    obs = [env.reset(seed=s)[0] for s in range(8)]
-    view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    view = reset_view(model, env_id, 8)
     head = model.selector.head
     rounds: list[tuple[ObsView, th.Tensor]] = []
     with th.no_grad():
@@ -836,14 +838,10 @@ def test_cover_imitation_loss_as_a_set():
     """``imitation="set"``: at each step of the labelled order the loss takes the probability of picking any member of
     the cover not picked yet, recomputed here by stepping a :class:`SelectState` through the labelled picks; it is never
     above the sequence loss, which takes the labelled pick's own probability."""
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    env = gym.make("TaskAlloc/MT-v0")
-    obs = [env.reset(seed=s)[0] for s in range(8)]
-    round_view = model.policy.parse(model.policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    model, round_view, task_of = mt_argmax_round()
     head = model.selector.head
     B, N, M = round_view.pair_cost.shape
     with th.no_grad():
-        task_of = th.where(round_view.assignable, model.actor(round_view).get_actions(True), -1)
         found = cover_search(head, round_view, task_of)
     labelled = (task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)).any(-1) & (found.profit > 0)
     assert bool((((found.rank >= 0).sum(-1) > 1) & labelled).any()), "no labelled team of two or more: the set is the pick"
