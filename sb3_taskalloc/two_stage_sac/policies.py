@@ -82,6 +82,11 @@ class TAMPolicy(BasePolicy):
         detail 10), else 1 (a random start is no rule to stay near)
     :param select_logit_scale: κ_s, the same for the pointer actor's logits; ``None``: 10 with ``heuristic_init``,
         else 1 (the paper's)
+    :param select_pair_hidden: width of an MLP over each candidate's dynamic pair features and its task's state that
+        adds to the pointer actor's scores (not in the paper; 0: none): the interactions that the dot product and the
+        linear read-out cannot express, e.g. a candidate's coverage weighed by how much of the demand is left. It costs
+        one (batch × entities × width) tensor per decoding step. With ``heuristic_init`` its output layer starts at 0,
+        so the pointer starts at the rule
     :param rounds: pre-assign rounds per decision (not in the paper, where there is one): after each round, the
         entities the pointer did not pick pre-assign again among the open tasks that no round has tried yet, so a task
         whose candidates fell short no longer holds every entity that chose it. The stored decision, which the losses
@@ -133,6 +138,7 @@ class TAMPolicy(BasePolicy):
         team_value: bool = True,
         logit_scale: float | None = None,
         select_logit_scale: float | None = None,
+        select_pair_hidden: int = 0,
         n_critics: int = 2,
         rounds: int = 1,
         decision_samples: int = 1,
@@ -173,6 +179,9 @@ class TAMPolicy(BasePolicy):
         for name, count in counts:
             if not (isinstance(count, int) and count >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {count!r}")
+        if not (isinstance(select_pair_hidden, int) and select_pair_hidden >= 0):
+            raise ValueError(f"select_pair_hidden must be an integer ≥ 0 (0: no pair MLP), got {select_pair_hidden!r}")
+        self.select_pair_hidden = select_pair_hidden
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
         self.pair_features = pair_features
@@ -271,7 +280,16 @@ class TAMPolicy(BasePolicy):
             self.critic_target = self._make_critic()
             self.critic_target.load_state_dict(self.critic.state_dict())
             self.critic_target.train(False)
-        self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn, logit_scale=self.select_logit_scale))
+        self.selector = Selector(
+            PointerHead(
+                Fe,
+                K,
+                self.hidden_dim,
+                self.activation_fn,
+                logit_scale=self.select_logit_scale,
+                pair_hidden=self.select_pair_hidden,
+            )
+        )
         self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
@@ -320,6 +338,8 @@ class TAMPolicy(BasePolicy):
         head.dyn.weight[0, UNIT_COST] = HEURISTIC_INIT["unit_cost"]
         head.dyn.bias.zero_()
         _scale_last_layer(head.task, gain)
+        if head.pair is not None:
+            _scale_last_layer(head.pair, gain)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -338,6 +358,7 @@ class TAMPolicy(BasePolicy):
                 team_value=self.team_value,
                 logit_scale=self.logit_scale,
                 select_logit_scale=self.select_logit_scale,
+                select_pair_hidden=self.select_pair_hidden,
                 n_critics=self.n_critics,
                 rounds=self.rounds,
                 decision_samples=self.decision_samples,
