@@ -347,6 +347,35 @@ def test_frozen_priors_skip_only_zero_dot_products():
     assert not make_policy(env, heuristic_init=False).selector_prior.head.skip_dot
 
 
+def test_pointer_pair_mlp_starts_at_the_rule():
+    """``select_pair_hidden``: the pointer's pair MLP starts with a zero output layer under ``heuristic_init``, so the
+    pointer scores as the rule (and its frozen prior skips the MLP); once the MLP's output is non-zero the scores move
+    and the prior, loaded with such weights, computes it."""
+    th.manual_seed(0)
+    env = gym.make("TaskAlloc/RBF-v0")
+    plain, paired = make_policy(env), make_policy(env, select_pair_hidden=8)
+    assert paired.selector.head.pair is not None and plain.selector.head.pair is None
+    assert paired.selector_prior.head.skip_pair and not paired.selector.head.skip_pair
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=4)))
+    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
+    task_state, dyn = SelectState(view, task_of).features()
+
+    def scores(head):
+        return head(head.embed_entities(view), task_state, dyn, task_of)
+
+    th.testing.assert_close(scores(paired.selector.head), scores(plain.selector.head), rtol=0, atol=0)
+    th.testing.assert_close(scores(paired.selector_prior.head), scores(plain.selector.head), rtol=0, atol=0)
+    state = dict(paired.state_dict())
+    for name in ("selector.head.pair.2.bias", "selector_prior.head.pair.2.bias"):
+        state[name] = th.ones_like(state[name])
+    paired.load_state_dict(state)
+    assert not paired.selector_prior.head.skip_pair
+    th.testing.assert_close(scores(paired.selector_prior.head), scores(plain.selector.head) + 10.0)  # κ_s = 10 times 1
+    assert paired._get_constructor_parameters()["select_pair_hidden"] == 8
+    with pytest.raises(ValueError, match="select_pair_hidden"):
+        make_policy(env, select_pair_hidden=-1)
+
+
 def test_optimizers_default_to_fused_adam():
     """Adam runs fused unless ``optimizer_kwargs`` picks an implementation or another optimizer is chosen."""
     env = gym.make("TaskAlloc/Almighty-v0")
@@ -416,16 +445,16 @@ def test_narrow_linear_matches_linear():
     assert list(fast.state_dict()) == ["weight", "bias"]
 
 
-@pytest.mark.parametrize("state_value", [False, True])
-def test_pointer_scores_equal_their_definition(state_value):
+@pytest.mark.parametrize("state_value, pair_hidden", [(False, 0), (True, 0), (False, 8)])
+def test_pointer_scores_equal_their_definition(state_value, pair_hidden):
     """``PointerHead`` (one batched product over all tasks, then each entity's own column) scores
-    u_i = d_i·e_j^t / √d + w·x_i^t (+ b(e_j^t)) with d = entity MLP, e = task MLP, as defined, in value and in every
-    parameter's gradient."""
+    u_i = d_i·e_j^t / √d + w·x_i^t (+ g([x_i^t, s_j^t])) (+ b(e_j^t)) with d = entity MLP, e = task MLP, s_j^t the
+    task state, as defined, in value and in every parameter's gradient."""
     from sb3_taskalloc.common.torch_layers import PointerHead
 
     th.manual_seed(0)
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 5, seed=2)))
-    head = PointerHead(view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value)
+    head = PointerHead(view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value, pair_hidden=pair_hidden)
     task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
     st = SelectState(view, task_of)
     task_state, dyn = select_features(
@@ -438,6 +467,9 @@ def test_pointer_scores_equal_their_definition(state_value):
         d, e = head.entity(view.entity), head.task(task_state)  # (B, N, H), (T, B, M, H)
         e_own = th.stack([e[:, b, own[b]] for b in range(own.shape[0])], 1)  # (T, B, N, H)
         scores = (e_own * d).sum(-1) / head.scale + head.dyn(dyn).squeeze(-1)
+        if head.pair is not None:
+            s_own = th.stack([task_state[:, b, own[b]] for b in range(own.shape[0])], 1)  # (T, B, N, S)
+            scores = scores + head.pair(th.cat([dyn, s_own], -1)).squeeze(-1)
         if head.value is not None:
             scores = scores + th.gather(head.value(e).squeeze(-1), -1, own.expand(3, -1, -1))
         return scores

@@ -19,7 +19,15 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{}, {"preassign": False}, {"encoder": "mlp"}, {"mixer": "global"}, {"rounds": 2, "decision_samples": 8}]
+    "kwargs",
+    [
+        {},
+        {"preassign": False},
+        {"encoder": "mlp"},
+        {"mixer": "global"},
+        {"rounds": 2, "decision_samples": 8},
+        {"select_pair_hidden": 8},
+    ],
 )
 def test_save_load_identical_predict(tmp_path, kwargs):
     model = TwoStageSAC(

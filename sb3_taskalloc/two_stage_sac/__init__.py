@@ -38,7 +38,10 @@ published code):
    e_j^t re-encodes the task's remaining demand after t picks (instead of the learned update
    T^{t+1} = T^t + f^a(u^t)); x_i^t = a fixed basis of the entity's coverage of that demand, pair cost, margin,
    waste and unit cost (pair cost per unit of remaining demand covered), weighed linearly. The select critics
-   add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel.
+   add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel. ``select_pair_hidden`` > 0
+   adds to the actor's logits an MLP g([x_i^t, s_j^t]) of the entity's basis and its task's state (not in the
+   paper): the interactions of the two that the dot product and the linear read-out cannot express, at one
+   batch × entities × width tensor per step.
 7. Scores are divided by √d in the actor (paper) and not in the critics. Inputs are symlog-normalised.
 8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks (``warmup_exploration="uniform"``),
    or samples of the policy itself (``"policy"``: with ``heuristic_init``, the cost-greedy rules), whose transitions
