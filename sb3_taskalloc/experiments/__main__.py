@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> None:
         help="DAgger's loss: each labelled pick in the label's order, or any member of the cover not picked yet",
     )  # fmt: skip
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
-    learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config")
+    learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config (policy_kwargs merge key by key)")
     learn.add_argument("--out", default="results/learn")
     learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
     learn.add_argument(
@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import training_env, zoo_hyperparameters
+    from sb3_taskalloc.experiments.budgets import over_zoo, training_env
     from sb3_taskalloc.experiments.diagnose import diagnose, write
 
     if args.steps < 0 or args.episodes < 1:
@@ -148,7 +148,7 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
     if args.model:
         model = TwoStageSAC.load(args.model, device="cpu")
     else:
-        env, kwargs = training_env(env_id, {**zoo_hyperparameters(env_id), **args.algo_kwargs}, args.seed)
+        env, kwargs = training_env(env_id, over_zoo(env_id, args.algo_kwargs), args.seed)
         model = TwoStageSAC("TAMPolicy", env, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)

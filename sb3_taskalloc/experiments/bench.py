@@ -328,7 +328,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     ``--eval-every`` env steps; the evaluations are not counted in the time. One row per training seed and device."""
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import training_env, zoo_hyperparameters
+    from sb3_taskalloc.experiments.budgets import over_zoo, training_env
     from sb3_taskalloc.experiments.learn import Curve, episode_returns, eval_seeds
 
     env_id = "TaskAlloc/RBF-v0"
@@ -372,7 +372,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
             if not self.points or self.points[-1][0] < self.num_timesteps:
                 self._evaluate()
 
-    hyperparameters = {**zoo_hyperparameters(env_id), **args.algo_kwargs}
+    hyperparameters = over_zoo(env_id, args.algo_kwargs)
     rows = []
     for device in _devices(args):
         for seed in range(args.seeds):

@@ -132,6 +132,17 @@ def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str
     return block
 
 
+def over_zoo(env_id: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The env's zoo hyperparameters (:func:`zoo_hyperparameters`) with ``overrides`` on top. ``policy_kwargs`` merge
+    key by key: overriding one policy keyword (``{policy_kwargs: {select_pair_hidden: 64}}``) keeps the block's others
+    (its ``rounds``, its rule), as overriding one algorithm keyword keeps the rest of the block."""
+    block = zoo_hyperparameters(env_id)
+    merged = {**block, **overrides}
+    if isinstance(block.get("policy_kwargs"), dict) and isinstance(overrides.get("policy_kwargs"), dict):
+        merged["policy_kwargs"] = {**block["policy_kwargs"], **overrides["policy_kwargs"]}
+    return merged
+
+
 def training_env(env_id: str, hyperparameters: dict[str, Any], seed: int) -> tuple[Any, dict[str, Any]]:
     """The env TwoStageSAC trains on under zoo-style ``hyperparameters``, and the keywords left for TwoStageSAC: with
     ``n_envs`` > 1 (rl-zoo3's key for vectorised collection) a VecEnv of that many copies seeded from ``seed``, else

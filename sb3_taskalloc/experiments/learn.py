@@ -38,7 +38,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_taskalloc.common.utils import atomic_write_text
-from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, training_env, zoo_hyperparameters
+from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env
 
 #: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
 #: the expected return Ḡ, the correlation a perfect critic would reach against G, with the number of free entities, and
@@ -194,7 +194,7 @@ class LearnRun:
 
     @property
     def hyperparameters(self) -> dict[str, Any]:
-        return {**zoo_hyperparameters(self.env_id), **self.algo_kwargs}
+        return over_zoo(self.env_id, self.algo_kwargs)
 
     @property
     def key(self) -> str:
