@@ -163,6 +163,23 @@ def test_table_trains_w_o_pre_without_the_team_search(tmp_path, monkeypatch):
     assert not pooled.policy.preassign and pooled.select_search_coef == 0.0
 
 
+def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path):
+    """``--algo-kwargs`` go over the env's zoo block; a ``policy_kwargs`` override merges key by key, so that setting one
+    policy keyword keeps the block's others (RBF's two rounds) and the run's key changes with it."""
+    from sb3_taskalloc.experiments.budgets import over_zoo, zoo_hyperparameters
+    from sb3_taskalloc.experiments.learn import LearnRun
+
+    block = zoo_hyperparameters("TaskAlloc/RBF-v0")
+    assert block["policy_kwargs"]["rounds"] == 2  # what the merge must keep
+    merged = over_zoo("TaskAlloc/RBF-v0", {"tau": 0.05, "policy_kwargs": {"select_pair_hidden": 8, "hidden_dim": 32}})
+    assert merged["tau"] == 0.05 and merged["gamma"] == block["gamma"]
+    assert merged["policy_kwargs"] == {**block["policy_kwargs"], "select_pair_hidden": 8, "hidden_dim": 32}
+    assert over_zoo("TaskAlloc/RBF-v0", {}) == block
+    runs = [LearnRun("RBF", 1, 0, 1, 1000, kwargs, out=str(tmp_path)) for kwargs in ({}, {"policy_kwargs": {"rounds": 1}})]
+    assert runs[0].hyperparameters == block and runs[1].hyperparameters["policy_kwargs"]["heuristic_init"]
+    assert runs[0].key != runs[1].key
+
+
 def test_table_rejects_bad_arguments():
     with pytest.raises(ValueError, match="env"):
         TableRun("Foo", 1, "smoke")
