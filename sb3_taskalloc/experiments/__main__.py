@@ -63,7 +63,12 @@ def main(argv: list[str] | None = None) -> None:
         help="DAgger's loss: each labelled pick in the label's order, or any member of the cover not picked yet",
     )  # fmt: skip
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
-    learn.add_argument("--algo-kwargs", type=yaml_mapping, default={}, help="TwoStageSAC keywords over the zoo config (policy_kwargs merge key by key)")
+    learn.add_argument(
+        "--algo-kwargs",
+        type=yaml_mapping,
+        default={},
+        help="TwoStageSAC keywords over the zoo config (policy_kwargs merge key by key)",
+    )
     learn.add_argument("--out", default="results/learn")
     learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
     learn.add_argument(
