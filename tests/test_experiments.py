@@ -180,6 +180,44 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     assert runs[0].key != runs[1].key
 
 
+def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
+    """A ``learn --jobs N`` killed by a signal its workers do not receive leaves no worker training on: each worker
+    (set up by ``_one_thread``) exits once its parent is gone."""
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import multiprocessing, os, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from sb3_taskalloc.experiments.learn import _one_thread\n"
+        "if __name__ == '__main__':\n"
+        "    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_one_thread)\n"
+        "    print(pool.submit(os.getpid).result(), flush=True)\n"
+        "    pool.submit(time.sleep, 600)\n"
+        "    time.sleep(600)\n"
+    )
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=Path.cwd())
+    try:
+        worker = int(parent.stdout.readline())  # type: ignore[union-attr]
+    finally:
+        parent.kill()
+        parent.wait()
+
+    def alive(pid: int) -> bool:  # a zombie (exited, not reaped by the container's init) counts as gone
+        try:
+            state = Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0]
+        except (FileNotFoundError, IndexError):
+            return False
+        return state != "Z"
+
+    deadline = time.monotonic() + 30
+    while alive(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not alive(worker), f"worker {worker} still runs after its parent was killed"
+
+
 def test_table_rejects_bad_arguments():
     with pytest.raises(ValueError, match="env"):
         TableRun("Foo", 1, "smoke")

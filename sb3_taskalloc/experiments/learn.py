@@ -107,12 +107,30 @@ def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable
 
 
 def _one_thread() -> None:
-    """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered."""
+    """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered, and a
+    watch that ends the worker when the process that started it is gone (:func:`_exit_with_parent`)."""
+    import os
+    import threading
+
     import torch as th
 
     import envs  # noqa: F401
 
     th.set_num_threads(1)
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+
+
+def _exit_with_parent(parent: int, poll: float = 1.0) -> None:
+    """Exit this process once its parent ``parent`` is gone (it is then re-parented). A ``learn --jobs N`` stopped by a
+    signal its workers do not receive (``kill``, the session ending) would otherwise leave them training unobserved,
+    writing seeds into the results folder while a new run of the same folder starts. Seed records are written
+    atomically, so the seed in progress loses only its unsaved work, as on Ctrl-C; a new run resumes from the finished
+    seeds."""
+    import os
+
+    while os.getppid() == parent:
+        time.sleep(poll)
+    os._exit(1)
 
 
 class Curve(BaseCallback):
