@@ -664,13 +664,29 @@ def test_preassign_search_loss_distils_the_best_sample():
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
 
 
+def forced_steps(head, view: ObsView, task_of: th.Tensor, rank: th.Tensor):
+    """Step a :class:`SelectState` through the picks of ``rank`` (B, M, N) one at a time, the reference of the
+    teacher-forced losses: yields, per step t while a task is active, (t, the state before the step's picks, the
+    pointer's masked logits (B, M, N), each task's pick (B, M), which tasks pick (B, M))."""
+    st, d = SelectState(view, task_of), head.embed_entities(view)
+    for t in range(rank.shape[-1]):
+        if not bool(st.active.any()):
+            break
+        task_state, dyn = st.features()
+        logits = head(d, task_state, dyn, task_of).unsqueeze(1).masked_fill(~st.choice_mask(), NEG)
+        hit = rank == t
+        picks, valid = hit.float().argmax(-1), hit.any(-1) & st.active
+        yield t, st, logits, picks, valid
+        st.advance(picks, valid)
+
+
 def test_select_search_loss_distils_the_best_team():
     """``select_search_coef`` (implementation detail 18): per task, the search's team is at least as profitable as the
     deterministic one, its teacher-forced rewards add up to that profit, and the loss is −Σ_t log π(a*_t|s*_t) over the
     tasks it improves, recomputed here by stepping a :class:`SelectState` through the forced picks one at a time."""
     model, view, task_of = mt_argmax_round()
     head = model.selector.head
-    B, N, M = view.pair_cost.shape
+    B, _, M = view.pair_cost.shape
     candidates = task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)
     th.manual_seed(0)
     found = select_search(head, view, task_of, samples=32, temperature=3.0)
@@ -683,18 +699,9 @@ def test_select_search_loss_distils_the_best_team():
     tf = teacher_forced(view, task_of, found.rank)
     assert tf is not None
     th.testing.assert_close(tf.reward.sum(0)[improved], found.profit[improved], atol=1e-4, rtol=1e-5)
-    st = SelectState(view, task_of)
-    d = head.embed_entities(view)
     log_p = th.zeros(B, M)
-    for t in range(N):
-        if not bool(st.active.any()):
-            break
-        task_state, dyn = st.features()
-        logits = head(d, task_state, dyn, task_of).unsqueeze(1).masked_fill(~st.choice_mask(), NEG)  # (B, M, N)
-        hit = found.rank == t
-        picks, valid = hit.float().argmax(-1), hit.any(-1) & st.active
+    for _, _, logits, picks, valid in forced_steps(head, view, task_of, found.rank):
         log_p = log_p + th.where(valid, th.log_softmax(logits, -1).gather(-1, picks.unsqueeze(-1)).squeeze(-1), 0.0)
-        st.advance(picks, valid)
     th.testing.assert_close(search.loss, -log_p[improved].mean(), atol=1e-4, rtol=1e-5)
     has = candidates.any(-1) & view.task_mask
     assert float(search.improved) == pytest.approx(float(improved[has].float().mean()))
@@ -840,7 +847,7 @@ def test_cover_imitation_loss_as_a_set():
     above the sequence loss, which takes the labelled pick's own probability."""
     model, round_view, task_of = mt_argmax_round()
     head = model.selector.head
-    B, N, M = round_view.pair_cost.shape
+    B, _, M = round_view.pair_cost.shape
     with th.no_grad():
         found = cover_search(head, round_view, task_of)
     labelled = (task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)).any(-1) & (found.profit > 0)
@@ -849,19 +856,11 @@ def test_cover_imitation_loss_as_a_set():
     # As a set: at each step of the labelled order, the probability of any member not picked yet, recomputed by stepping
     # a SelectState through the labelled picks; never below the labelled pick's own probability.
     as_set = losses.cover_imitation_loss(head, round_view, task_of, found.rank, labelled, as_set=True)
-    st, d = SelectState(round_view, task_of), head.embed_entities(round_view)
     set_log_p = th.zeros(B, M)
-    for t in range(N):
-        if not bool(st.active.any()):
-            break
-        task_state, dyn = st.features()
-        logits = head(d, task_state, dyn, task_of).unsqueeze(1).masked_fill(~st.choice_mask(), NEG)  # (B, M, N)
-        hit = found.rank == t
-        picks, valid = hit.float().argmax(-1), hit.any(-1) & st.active
+    for t, st, logits, _, valid in forced_steps(head, round_view, task_of, found.rank):
         remaining = (found.rank >= t) & st.choice_mask()
         p_set = (th.softmax(logits, -1) * remaining.float()).sum(-1)
         set_log_p = set_log_p + th.where(valid, p_set.clamp_min(1e-12).log(), 0.0)
-        st.advance(picks, valid)
     th.testing.assert_close(as_set, -set_log_p[labelled].mean(), atol=1e-4, rtol=1e-5)
     assert float(as_set.detach()) <= float(before.detach()) + 1e-6
     assert float(losses.cover_imitation_loss(head, round_view, task_of, found.rank, th.zeros_like(labelled), True)) == 0.0
