@@ -16,6 +16,8 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_taskalloc.common.utils import check_counts
+
 
 class TwoStageReplayBufferSamples(NamedTuple):
     observations: dict[str, th.Tensor]
@@ -104,8 +106,7 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         n_steps: int = 1,
         gamma: float = 0.99,
     ) -> None:
-        if not (isinstance(n_steps, int) and n_steps >= 1):
-            raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
+        check_counts({"n_steps": n_steps})
         self.n_steps = n_steps
         self.gamma = float(gamma)
         super().__init__(

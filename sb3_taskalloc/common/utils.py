@@ -7,8 +7,16 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import torch as th
+
+
+def check_counts(counts: dict[str, Any]) -> None:
+    """A clear error for the first of ``counts`` (name -> value) that is not a positive integer."""
+    for name, count in counts.items():
+        if not (isinstance(count, int) and count >= 1):
+            raise ValueError(f"{name} must be a positive integer, got {count!r}")
 
 
 @th.no_grad()

@@ -26,6 +26,7 @@ from sb3_taskalloc.common.torch_layers import (
     PointerHead,
     parse_obs,
 )
+from sb3_taskalloc.common.utils import check_counts
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of, sampled_search
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
@@ -170,15 +171,7 @@ class TAMPolicy(BasePolicy):
         ):
             if value not in choices:
                 raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
-        counts = (
-            ("hidden_dim", hidden_dim),
-            ("n_critics", n_critics),
-            ("rounds", rounds),
-            ("decision_samples", decision_samples),
-        )
-        for name, count in counts:
-            if not (isinstance(count, int) and count >= 1):
-                raise ValueError(f"{name} must be a positive integer, got {count!r}")
+        check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds, decision_samples=decision_samples))
         if not (isinstance(select_pair_hidden, int) and select_pair_hidden >= 0):
             raise ValueError(f"select_pair_hidden must be an integer ≥ 0 (0: no pair MLP), got {select_pair_hidden!r}")
         self.select_pair_hidden = select_pair_hidden

@@ -36,7 +36,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.common.utils import foreach_polyak_update
+from sb3_taskalloc.common.utils import check_counts, foreach_polyak_update
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
@@ -49,13 +49,6 @@ class _CoverLabel(NamedTuple):
     task_of: th.Tensor  # (1, N) the round's candidate sets
     rank: th.Tensor  # (1, M, N) each task's labelled team in pick order
     labelled: th.Tensor  # (1, M) tasks whose team is a label
-
-
-def _check_counts(counts: dict[str, Any]) -> None:
-    """A clear error for the first of ``counts`` (name -> value) that is not a positive integer."""
-    for name, count in counts.items():
-        if not (isinstance(count, int) and count >= 1):
-            raise ValueError(f"{name} must be a positive integer, got {count!r}")
 
 
 def _check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:
@@ -277,7 +270,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             "counterfactual_batch_size": counterfactual_batch_size,
             **({} if select_search_batch_size is None else {"select_search_batch_size": select_search_batch_size}),
         }
-        _check_counts(counts)
+        check_counts(counts)
         _check_choices(
             {
                 "reward_timing": (reward_timing, ("completion", "commitment")),
@@ -763,7 +756,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
 
         if not self.policy.preassign:
             raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
-        _check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
+        check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
         _check_choices({"imitation": (imitation, ("sequence", "set"))})
         if not learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
