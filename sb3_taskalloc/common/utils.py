@@ -19,6 +19,13 @@ def check_counts(counts: dict[str, Any]) -> None:
             raise ValueError(f"{name} must be a positive integer, got {count!r}")
 
 
+def check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:
+    """A clear error for the first of ``choices`` (name -> (value, allowed values)) whose value is not allowed."""
+    for name, (value, allowed) in choices.items():
+        if value not in allowed:
+            raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
+
+
 @th.no_grad()
 def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
     """SB3's :func:`~stable_baselines3.common.utils.polyak_update` (θ' ← (1 − τ)·θ' + τ·θ, the same arithmetic) with

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
+from sb3_taskalloc.common.utils import atomic_path, atomic_write_text, check_choices
 from sb3_taskalloc.experiments.budgets import (
     BUDGETS,
     ENVS,
@@ -117,10 +117,7 @@ class TableRun:
         methods: list[str] | None = None,
         progress: bool = True,
     ) -> None:
-        if env not in ENVS:
-            raise ValueError(f"env must be one of {ENVS}, got {env!r}")
-        if budget not in BUDGETS:
-            raise ValueError(f"budget must be one of {list(BUDGETS)}, got {budget!r}")
+        check_choices({"env": (env, tuple(ENVS)), "budget": (budget, tuple(BUDGETS))})
         unknown = set(methods or []) - set(METHODS)
         if unknown:
             raise ValueError(f"unknown methods {sorted(unknown)}; choose from {list(METHODS)}")

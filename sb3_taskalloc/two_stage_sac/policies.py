@@ -26,7 +26,7 @@ from sb3_taskalloc.common.torch_layers import (
     PointerHead,
     parse_obs,
 )
-from sb3_taskalloc.common.utils import check_counts
+from sb3_taskalloc.common.utils import check_choices, check_counts
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of, sampled_search
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
@@ -164,13 +164,13 @@ class TAMPolicy(BasePolicy):
                 "every task decodes its own candidates in parallel, in no order"
             )
         task_order = task_order or "sequential"
-        for name, value, choices in (
-            ("task_order", task_order, ("sequential", "random")),
-            ("encoder", encoder, tuple(ENCODERS)),
-            ("mixer", mixer, tuple(MIXERS)),
-        ):
-            if value not in choices:
-                raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+        check_choices(
+            {
+                "task_order": (task_order, ("sequential", "random")),
+                "encoder": (encoder, tuple(ENCODERS)),
+                "mixer": (mixer, tuple(MIXERS)),
+            }
+        )
         check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds, decision_samples=decision_samples))
         if not (isinstance(select_pair_hidden, int) and select_pair_hidden >= 0):
             raise ValueError(f"select_pair_hidden must be an integer ≥ 0 (0: no pair MLP), got {select_pair_hidden!r}")

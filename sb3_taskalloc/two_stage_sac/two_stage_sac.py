@@ -36,7 +36,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.common.utils import check_counts, foreach_polyak_update
+from sb3_taskalloc.common.utils import check_choices, check_counts, foreach_polyak_update
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
@@ -49,13 +49,6 @@ class _CoverLabel(NamedTuple):
     task_of: th.Tensor  # (1, N) the round's candidate sets
     rank: th.Tensor  # (1, M, N) each task's labelled team in pick order
     labelled: th.Tensor  # (1, M) tasks whose team is a label
-
-
-def _check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:
-    """A clear error for the first of ``choices`` (name -> (value, allowed values)) whose value is not allowed."""
-    for name, (value, allowed) in choices.items():
-        if value not in allowed:
-            raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
 
 
 #: Budget of ``learn()`` called without ``total_timesteps`` (env steps).
@@ -271,7 +264,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             **({} if select_search_batch_size is None else {"select_search_batch_size": select_search_batch_size}),
         }
         check_counts(counts)
-        _check_choices(
+        check_choices(
             {
                 "reward_timing": (reward_timing, ("completion", "commitment")),
                 "entropy_bonus": (entropy_bonus, ("sum", "mean")),
@@ -757,7 +750,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         if not self.policy.preassign:
             raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
         check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
-        _check_choices({"imitation": (imitation, ("sequence", "set"))})
+        check_choices({"imitation": (imitation, ("sequence", "set"))})
         if not learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
         vec_env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)
