@@ -530,6 +530,10 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert "| seed | untrained | trained | Greedy | MILP |" in searched.read_text()
     rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
     assert [r["MILP"] for r in rows] == [r["MILP"] for r in data["seeds"]]  # the seeds' own held-out episodes
+    both = run.reevaluate(decision_samples=2, select_decision_samples=3)  # and a search of 3 teams per task
+    assert both.name == "EPT_decision_samples_2_select_decision_samples_3.md"
+    assert "--decision-samples 2 --select-decision-samples 3`" in both.read_text()
+    assert json.loads(both.with_suffix(".json").read_text())["select_decision_samples"] == 3
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.

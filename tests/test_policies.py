@@ -231,6 +231,43 @@ def test_decision_samples_take_the_most_profitable_first_round():
             make_policy(env, **bad)
 
 
+def test_select_decision_samples_take_each_tasks_most_profitable_team():
+    """With ``select_decision_samples`` K_s each task of a deterministic decision sends the best, by its profit, of the
+    pointer's argmax team and K_s − 1 sampled ones: a team of its own candidates that covers it, never less profitable
+    than the argmax's and more in some of these RBF tasks; reproducible, and sampled decisions do not search."""
+    env = gym.make("TaskAlloc/RBF-v0")
+    plain, searching, again = (make_policy(env, select_decision_samples=k) for k in (1, 16, 16))
+    obs, states = env.reset(seed=0)[0], []
+    for t in range(40):  # states of the policy's own episode, once apples have gathered
+        states += [obs] if t % 5 == 4 else []
+        obs = env.step(plain.predict(obs, deterministic=True)[0])[0]
+    view = parse_obs(obs_as_tensor({k: np.stack([o[k] for o in states]) for k in states[0]}, th.device("cpu")))
+    searching.load_state_dict(plain.state_dict())
+    again.load_state_dict(plain.state_dict())
+
+    def task_profits(decision) -> th.Tensor:  # (B, M): r_j − Σ pair costs of j's sent team, 0 where none is sent
+        team = (decision.pick_rank >= 0) & decision.kept.unsqueeze(-1)  # (B, M, N)
+        supplied = th.einsum("bmn,bnk->bmk", team.float(), view.supply)
+        assert bool((supplied >= view.demand - 1e-5).all(-1)[decision.kept].all())  # every kept team covers its task
+        assert bool((team <= decision.candidates).all())  # and is made of the task's candidates
+        cost = (team.float() * view.pair_cost.transpose(1, 2)).sum(-1)
+        return decision.kept * (view.reward - cost)
+
+    with th.no_grad():
+        base, best = plain.decide(view, deterministic=True), searching.decide(view, deterministic=True)
+        assert th.equal(base.candidates, best.candidates)  # the pre-assignment is the argmax's
+        p0, p1 = task_profits(base), task_profits(best)
+        assert bool((p1 >= p0 - 1e-5).all()) and bool((p1 > p0 + 1e-5).any())
+        assert th.equal(again.decide(view, deterministic=True).env_action, best.env_action)
+        th.manual_seed(1)
+        sampled = plain.decide(view, deterministic=False).env_action
+        th.manual_seed(1)
+        assert th.equal(searching.decide(view, deterministic=False).env_action, sampled)
+    for bad in ({"select_decision_samples": 0}, {"select_decision_temperature": -1.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            make_policy(env, **bad)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "agnostic"),
     [({}, True), ({"preassign": False}, True), ({"encoder": "mlp"}, False), ({"mixer": "global"}, False)],

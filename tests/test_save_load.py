@@ -25,7 +25,7 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
         {"preassign": False},
         {"encoder": "mlp"},
         {"mixer": "global"},
-        {"rounds": 2, "decision_samples": 8},
+        {"rounds": 2, "decision_samples": 8, "select_decision_samples": 4},
         {"select_pair_hidden": 8},
     ],
 )
@@ -37,7 +37,7 @@ def test_save_load_identical_predict(tmp_path, kwargs):
     model.save(tmp_path / "model")
     loaded = TwoStageSAC.load(tmp_path / "model", env=gym.make("TaskAlloc/RBF-v0"))
     assert all(getattr(loaded.policy, k) == v for k, v in kwargs.items())
-    for obs in observations("TaskAlloc/RBF-v0"):  # with decision_samples both search from their own stream, seeded at 0
+    for obs in observations("TaskAlloc/RBF-v0"):  # with the searches both draw from their own stream, seeded at 0
         np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
     for key, value in model.policy.state_dict().items():
         assert np.array_equal(value.cpu().numpy(), loaded.policy.state_dict()[key].cpu().numpy()), key

@@ -37,11 +37,13 @@ class MaskedCategorical:
         return masked_pick(self.logits, deterministic)
 
 
-def masked_pick(masked_logits: th.Tensor, deterministic: bool) -> th.Tensor:
+def masked_pick(masked_logits: th.Tensor, deterministic: bool, generator: th.Generator | None = None) -> th.Tensor:
     """Index along the last axis: argmax of logits already filled with ``NEG`` where masked, or a sample of their
-    softmax by the Gumbel-max trick (torch's global RNG, so ``set_random_seed`` applies). No softmax is computed."""
+    softmax by the Gumbel-max trick (``generator``, by default torch's global RNG, so ``set_random_seed`` applies).
+    No softmax is computed."""
     if not deterministic:
-        u = th.rand_like(masked_logits).clamp_(1e-10, 1.0 - 1e-7)
+        shape, like = masked_logits.shape, dict(dtype=masked_logits.dtype, device=masked_logits.device)
+        u = th.rand(shape, generator=generator, **like).clamp_(1e-10, 1.0 - 1e-7)  # type: ignore[call-overload]
         masked_logits = masked_logits - th.log(-th.log(u))
     return th.argmax(masked_logits, dim=-1)
 

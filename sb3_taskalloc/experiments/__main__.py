@@ -78,6 +78,10 @@ def main(argv: list[str] | None = None) -> None:
         "--decision-samples", type=int, default=1, metavar="K",
         help="then evaluate the trained and untrained models deciding with a search of K pre-assignments (and on --zero-shot)",
     )  # fmt: skip
+    learn.add_argument(
+        "--select-decision-samples", type=int, default=1, metavar="K",
+        help="then evaluate them deciding with a search of K teams per task (with --decision-samples: both searches)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
 
     import torch as th
@@ -86,38 +90,7 @@ def main(argv: list[str] | None = None) -> None:
 
     th.set_num_threads(1)
     if args.command == "learn":
-        from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
-
-        if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
-            parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
-        if args.steps < (0 if args.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
-            parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
-        if args.validation_episodes < 0:
-            parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
-        if args.select_dagger < 0:
-            parser.error(f"--select-dagger must be >= 0, got {args.select_dagger}")
-        planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
-        unknown = set(planners) - set(PLANNERS)
-        if unknown:
-            parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
-        run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
-                       out=args.out, validation_episodes=args.validation_episodes,
-                       select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation)  # fmt: skip
-        if args.decision_samples < 1:
-            parser.error(f"--decision-samples must be >= 1, got {args.decision_samples}")
-        path = run.run(jobs=args.jobs)
-        print(path.read_text())
-        print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
-        evaluations: list[tuple[str | None, int]] = [(args.zero_shot, 1)] if args.zero_shot else []
-        if args.decision_samples > 1:
-            evaluations += [
-                (None, args.decision_samples),
-                *([(args.zero_shot, args.decision_samples)] if args.zero_shot else []),
-            ]
-        for shift, samples in evaluations:
-            again = run.reevaluate(shift, samples)
-            print(again.read_text())
-            print(f"wrote {again}, {again.with_suffix('.json')}")
+        _learn(parser, args)
         return
     if args.command == "diagnose":
         _diagnose(parser, args)
@@ -138,6 +111,40 @@ def main(argv: list[str] | None = None) -> None:
     path = TableRun(args.env, args.seeds, args.budget, args.out, args.methods).run()
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.csv')}")
+
+
+def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
+
+    if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
+        parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
+    if args.steps < (0 if args.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
+        parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
+    if args.validation_episodes < 0:
+        parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
+    if args.select_dagger < 0:
+        parser.error(f"--select-dagger must be >= 0, got {args.select_dagger}")
+    planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
+    unknown = set(planners) - set(PLANNERS)
+    if unknown:
+        parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
+    run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
+                   out=args.out, validation_episodes=args.validation_episodes,
+                   select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation)  # fmt: skip
+    for flag in ("decision_samples", "select_decision_samples"):
+        if getattr(args, flag) < 1:
+            parser.error(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    path = run.run(jobs=args.jobs)
+    print(path.read_text())
+    print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
+    evaluations: list[tuple[str | None, int, int]] = [(args.zero_shot, 1, 1)] if args.zero_shot else []
+    searches = (args.decision_samples, args.select_decision_samples)
+    if max(searches) > 1:
+        evaluations += [(None, *searches), *([(args.zero_shot, *searches)] if args.zero_shot else [])]
+    for shift, samples, teams in evaluations:
+        again = run.reevaluate(shift, samples, teams)
+        print(again.read_text())
+        print(f"wrote {again}, {again.with_suffix('.json')}")
 
 
 def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

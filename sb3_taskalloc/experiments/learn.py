@@ -542,12 +542,13 @@ class LearnRun:
         ``<out>/<env>_zero_shot_<shift>.md`` and ``.json``. :return: the Markdown path."""
         return self.reevaluate(shift)
 
-    def reevaluate(self, shift: str | None = None, decision_samples: int = 1) -> Path:
+    def reevaluate(self, shift: str | None = None, decision_samples: int = 1, select_decision_samples: int = 1) -> Path:
         """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
         env (``shift``, zero-shot) or of the training env, deciding with decision-time search of ``decision_samples``
-        pre-assignments (:class:`~sb3_taskalloc.TAMPolicy`'s ``decision_samples``; 1: the argmax), against Greedy (and
-        the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>][_decision_samples_<K>].md``
-        and ``.json``. Training is untouched: its sampled decisions never search. :return: the Markdown path."""
+        pre-assignments and ``select_decision_samples`` teams per task (:class:`~sb3_taskalloc.TAMPolicy`'s keywords of
+        those names; 1: the argmax), against Greedy (and the per-step MILP on the training env); writes
+        ``<out>/<env>[_zero_shot_<shift>][_decision_samples_<K>][_select_decision_samples_<K_s>].md`` and ``.json``.
+        Training is untouched: its sampled decisions never search. :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
 
@@ -559,22 +560,28 @@ class LearnRun:
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
             seeds = eval_seeds(seed, self.eval_episodes)
             trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
-            kwargs = {**trained.policy_kwargs, "decision_samples": decision_samples}
-            trained.policy.decision_samples = decision_samples
+            searches = {"decision_samples": decision_samples, "select_decision_samples": select_decision_samples}
+            kwargs = {**trained.policy_kwargs, **searches}
+            for name, value in searches.items():
+                setattr(trained.policy, name, value)
             untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=kwargs)
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
                    "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
             row.update({"Greedy": episode_returns(b.GreedyAllocator(), env_id, seeds)} if shift else self.baselines(seed))
             rows.append(row)
         searched = f"_decision_samples_{decision_samples}" if decision_samples > 1 else ""
+        searched += f"_select_decision_samples_{select_decision_samples}" if select_decision_samples > 1 else ""
         stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
-        settings = {"settings": self.describe(), "env": env_id, "decision_samples": decision_samples, "seeds": rows}
+        settings = {"settings": self.describe(), "env": env_id, **searches, "seeds": rows}
         atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
         columns = ["untrained", "trained", "Greedy", *([] if shift else ["MILP"])]
         means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
         how = "zero-shot" if shift else "held-out episodes"
         how += f", decision-time search of {decision_samples} pre-assignments" if decision_samples > 1 else ""
-        flags = (f" --zero-shot {shift}" if shift else "") + (f" --decision-samples {decision_samples}" if searched else "")
+        how += f", decision-time search of {select_decision_samples} teams per task" if select_decision_samples > 1 else ""
+        flags = f" --zero-shot {shift}" if shift else ""
+        flags += f" --decision-samples {decision_samples}" if decision_samples > 1 else ""
+        flags += f" --select-decision-samples {select_decision_samples}" if select_decision_samples > 1 else ""
         lines = [
             f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
             "",

@@ -125,6 +125,12 @@ published code):
    whose better team is not kept (profit ≤ 0) is not labelled. Inside ``train`` the same teacher meets the replayed
    states of the sampled behaviour once each, beside the pointer's SAC loss; here it meets the deployed argmax's own
    states (the distribution the deterministic policy is evaluated on) repeatedly, and the pointer fits its labels.
+20. Decision-time team search (``TAMPolicy(select_decision_samples=K_s)``, not in the paper): detail 18's search at
+   decision time instead of as a teacher. In a deterministic decision every task of every pre-assign round takes the
+   best, by its profit, of the pointer's argmax team and K_s − 1 teams sampled from the pointer at
+   ``select_decision_temperature``; all tasks and samples decode in one batched pass. Candidate sets are disjoint,
+   so the tasks' best teams together are one decision, never less profitable in the step than the argmax's. With
+   ``decision_samples`` (detail 16's decision-time search) the pre-assignment is chosen first, on the argmax teams.
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

@@ -27,7 +27,14 @@ from sb3_taskalloc.common.torch_layers import (
     parse_obs,
 )
 from sb3_taskalloc.common.utils import check_choices, check_counts
-from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of, sampled_search
+from sb3_taskalloc.two_stage_sac.select_stage import (
+    Decision,
+    SelectState,
+    decode_round,
+    env_action_of,
+    sampled_search,
+    select_search,
+)
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
 #: the pre-assign actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight
@@ -101,6 +108,12 @@ class TAMPolicy(BasePolicy):
         at 0, so an evaluation is reproducible. Sampled decisions (training) do not search; ignored without
         pre-assignment
     :param decision_temperature: T of those samples
+    :param select_decision_samples: decision-time search of the teams (not in the paper; 1: off): in a deterministic
+        decision each task of every round takes the best, by its profit (reward on cover minus its team's pair costs),
+        of the pointer's argmax team and ``select_decision_samples`` − 1 teams it samples at
+        ``select_decision_temperature`` (:func:`.select_stage.select_search`, implementation detail 20), from the same
+        stream as ``decision_samples``. Sampled decisions (training) do not search; ignored without pre-assignment
+    :param select_decision_temperature: T of those sampled teams
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -144,6 +157,8 @@ class TAMPolicy(BasePolicy):
         rounds: int = 1,
         decision_samples: int = 1,
         decision_temperature: float = 2.0,
+        select_decision_samples: int = 1,
+        select_decision_temperature: float = 1.0,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -171,7 +186,8 @@ class TAMPolicy(BasePolicy):
                 "mixer": (mixer, tuple(MIXERS)),
             }
         )
-        check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds, decision_samples=decision_samples))
+        counts = dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds, decision_samples=decision_samples)
+        check_counts({**counts, "select_decision_samples": select_decision_samples})
         if not (isinstance(select_pair_hidden, int) and select_pair_hidden >= 0):
             raise ValueError(f"select_pair_hidden must be an integer ≥ 0 (0: no pair MLP), got {select_pair_hidden!r}")
         self.select_pair_hidden = select_pair_hidden
@@ -192,6 +208,7 @@ class TAMPolicy(BasePolicy):
             select_logit_scale = RULE_LOGIT_SCALES[1] if heuristic_init else 1.0
         scales = {"logit_scale": logit_scale, "select_logit_scale": select_logit_scale}
         scales["decision_temperature"] = decision_temperature
+        scales["select_decision_temperature"] = select_decision_temperature
         for name, scale in scales.items():
             if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
@@ -201,6 +218,8 @@ class TAMPolicy(BasePolicy):
         self.rounds = rounds
         self.decision_samples = decision_samples
         self.decision_temperature = float(decision_temperature)
+        self.select_decision_samples = select_decision_samples
+        self.select_decision_temperature = float(select_decision_temperature)
         self._search_stream: th.Generator | None = None
         self.heuristic_init = heuristic_init
         self.rule_weights = dict(rule_weights or {})
@@ -356,6 +375,8 @@ class TAMPolicy(BasePolicy):
                 rounds=self.rounds,
                 decision_samples=self.decision_samples,
                 decision_temperature=self.decision_temperature,
+                select_decision_samples=self.select_decision_samples,
+                select_decision_temperature=self.select_decision_temperature,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
@@ -456,12 +477,23 @@ class TAMPolicy(BasePolicy):
                 c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             if rounds_out is not None:
                 rounds_out.append((view, c))
-            st = self.select_round(view, c, deterministic, uniform)
+            if deterministic and not uniform and self.select_decision_samples > 1:
+                teams = select_search(
+                    self.selector.head,
+                    view,
+                    c,
+                    self.select_decision_samples,
+                    self.select_decision_temperature,
+                    self._stream(view),
+                )
+                rank, kept = teams.rank, teams.profit > 0  # a task's profit is positive exactly where its team is kept
+            else:
+                st = self.select_round(view, c, deterministic, uniform)
+                rank, kept = st.rank, st.kept()
             candidates = c.unsqueeze(1) == tasks
-            kept = st.kept()
-            action = env_action_of(st.rank, kept)
+            action = env_action_of(rank, kept)
             if first is None:
-                first = Decision(action, candidates, st.rank, kept)
+                first = Decision(action, candidates, rank, kept)
             env_action = th.where(action < M, action, env_action)
             if r + 1 == self.rounds:  # no round follows: skip the next view and its device sync
                 break

@@ -233,6 +233,7 @@ def decode_round(
     deterministic: bool,
     uniform: bool = False,
     temperature: float = 1.0,
+    generator: th.Generator | None = None,
 ) -> SelectState:
     """Decode the teams of every task of one round in parallel (one pick per task per step).
 
@@ -240,6 +241,7 @@ def decode_round(
     :param task_of: (B, N) task each entity is a candidate of in this round (−1: none)
     :param deterministic: argmax picks (else sampled)
     :param temperature: T of sampled picks, drawn from softmax(logits / T)
+    :param generator: the random stream of sampled picks (None: torch's global one)
     """
     st = SelectState(view, task_of)
     B, _, N = st.seg.shape
@@ -255,7 +257,7 @@ def decode_round(
             logits = head(d, task_state, dyn, task_of)  # type: ignore[misc]
             if not deterministic and temperature != 1.0:
                 logits = logits / temperature
-        picks = masked_pick(logits.unsqueeze(1).masked_fill(~mask, NEG), deterministic)  # (B, M)
+        picks = masked_pick(logits.unsqueeze(1).masked_fill(~mask, NEG), deterministic, generator)  # (B, M)
         valid = st.active.clone()
         old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
         st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
@@ -283,7 +285,12 @@ class SelectSearchResult(NamedTuple):
 
 
 def select_search(
-    head: PointerHead, view: ObsView, task_of: th.Tensor, samples: int, temperature: float
+    head: PointerHead,
+    view: ObsView,
+    task_of: th.Tensor,
+    samples: int,
+    temperature: float,
+    generator: th.Generator | None = None,
 ) -> SelectSearchResult:
     """Per task, the best of the deterministic decode and ``samples`` − 1 sampled decodes of its team, by the task's
     profit (:func:`task_profit`, the select stage's return: reward on cover minus the pair costs); the deterministic
@@ -294,6 +301,7 @@ def select_search(
     :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param samples: K, decodes per task including the deterministic one (1: that one alone)
     :param temperature: T of the sampled decodes (> 1: picks further from the argmax)
+    :param generator: the random stream of the sampled decodes (None: torch's global one)
     """
     base = decode_round(head, view, task_of, deterministic=True)
     p0 = task_profit(base)
@@ -301,7 +309,7 @@ def select_search(
         return SelectSearchResult(base.rank, p0, p0)
     (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
     rep = ObsView(*(x.repeat_interleave(S, 0) for x in view))
-    st = decode_round(head, rep, task_of.repeat_interleave(S, 0), deterministic=False, temperature=temperature)
+    st = decode_round(head, rep, task_of.repeat_interleave(S, 0), False, temperature=temperature, generator=generator)
     profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first
     best = profit.argmax(1)  # (B, M), the first maximum
     ranks = th.cat([base.rank.unsqueeze(1), st.rank.view(B, S, M, N)], 1)
