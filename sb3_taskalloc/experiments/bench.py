@@ -153,6 +153,8 @@ def _state_latencies_ms(agent: Any, states: list[dict[str, np.ndarray]], device:
 
 #: Pre-assignments of the decision-time search row (``TAMPolicy(decision_samples)``; implementation detail 16).
 SEARCH = 32
+#: Teams per task of the decision-time team search row (``TAMPolicy(select_decision_samples)``; implementation detail 20).
+TEAM_SEARCH = 64
 
 
 def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[dict[str, Any]]:
@@ -181,17 +183,21 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
     states = _episode_states(trained, env_id, seeds)
     rows = []
     for device in devices:
-        for name, agent, samples in (("trained", trained, 1), ("untrained", untrained, 1), ("trained", trained, SEARCH)):
+        variants = (("trained", trained, 1, 1), ("untrained", untrained, 1, 1), ("trained", trained, SEARCH, 1),
+                    ("trained", trained, 1, TEAM_SEARCH))  # fmt: skip
+        for name, agent, samples, teams in variants:
             agent.policy.to(device)
             agent.device = th.device(device)
-            agent.policy.decision_samples = samples
+            agent.policy.decision_samples, agent.policy.select_decision_samples = samples, teams
             ms = _state_latencies_ms(agent, states, device)
-            agent.policy.decision_samples = 1
+            agent.policy.decision_samples = agent.policy.select_decision_samples = 1
+            label = f"TAMPolicy {name}" + (f", search of {samples}" if samples > 1 else "")
+            label += f", team search of {teams}" if teams > 1 else ""
             rows.append(
-                {"device": device, "policy": f"TAMPolicy {name}" + (f", search of {samples}" if samples > 1 else ""),
+                {"device": device, "policy": label,
                  "states": len(states), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
                  "model": source if name == "trained" else None,
-                 "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if samples == 1 else None}
+                 "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if samples == teams == 1 else None}
             )  # fmt: skip
     ms = _state_latencies_ms(GreedyAllocator(), states)
     rows.append({"device": "cpu", "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
