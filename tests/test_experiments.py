@@ -530,6 +530,13 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert "| seed | untrained | trained | Greedy | MILP |" in searched.read_text()
     rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
     assert [r["MILP"] for r in rows] == [r["MILP"] for r in data["seeds"]]  # the seeds' own held-out episodes
+    with monkeypatch.context() as patched:  # each seed's row was saved: a second call evaluates nothing again
+        patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("a finished seed was evaluated again"))
+        assert run.reevaluate(decision_samples=4).read_text() == searched.read_text()
+    saved = next(tmp_path.glob("EPT/EPT_decision_samples_4_seed_0_*.json"))
+    saved.write_text(json.dumps({**rows[0], "trained": [-1.0, -1.0], "model_digest": "another model"}))
+    again = json.loads(run.reevaluate(decision_samples=4).with_suffix(".json").read_text())["seeds"]
+    assert again[0]["trained"] == rows[0]["trained"]  # a row of another model file is evaluated again
     both = run.reevaluate(decision_samples=2, select_decision_samples=3)  # and a search of 3 teams per task
     assert both.name == "EPT_decision_samples_2_select_decision_samples_3.md"
     assert "--decision-samples 2 --select-decision-samples 3`" in both.read_text()

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import json
 import time
 import warnings
@@ -548,19 +549,28 @@ class LearnRun:
         pre-assignments and ``select_decision_samples`` teams per task (:class:`~sb3_taskalloc.TAMPolicy`'s keywords of
         those names; 1: the argmax), against Greedy (and the per-step MILP on the training env); writes
         ``<out>/<env>[_zero_shot_<shift>][_decision_samples_<K>][_select_decision_samples_<K_s>].md`` and ``.json``.
-        Training is untouched: its sampled decisions never search. :return: the Markdown path."""
+        Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes, under a digest
+        of its model file, so an interrupted re-evaluation resumes at the seed it stopped in. :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
 
         env_id = f"TaskAlloc/{shift}-v0" if shift else self.env_id
+        searched = f"_decision_samples_{decision_samples}" if decision_samples > 1 else ""
+        searched += f"_select_decision_samples_{select_decision_samples}" if select_decision_samples > 1 else ""
+        stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
+        searches = {"decision_samples": decision_samples, "select_decision_samples": select_decision_samples}
         rows: list[dict[str, Any]] = []
         for seed in range(self.seeds):
             path = self.seed_path(seed).with_suffix(".zip")
             if not path.exists():
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
+            model_digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+            done = self.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{self.key}.json")
+            if done.exists() and json.loads(done.read_text()).get("model_digest") == model_digest:
+                rows.append(json.loads(done.read_text()))
+                continue
             seeds = eval_seeds(seed, self.eval_episodes)
             trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
-            searches = {"decision_samples": decision_samples, "select_decision_samples": select_decision_samples}
             kwargs = {**trained.policy_kwargs, **searches}
             for name, value in searches.items():
                 setattr(trained.policy, name, value)
@@ -568,10 +578,9 @@ class LearnRun:
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
                    "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
             row.update({"Greedy": episode_returns(b.GreedyAllocator(), env_id, seeds)} if shift else self.baselines(seed))
+            row["model_digest"] = model_digest
+            atomic_write_text(done, json.dumps(row) + "\n")
             rows.append(row)
-        searched = f"_decision_samples_{decision_samples}" if decision_samples > 1 else ""
-        searched += f"_select_decision_samples_{select_decision_samples}" if select_decision_samples > 1 else ""
-        stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
         settings = {"settings": self.describe(), "env": env_id, **searches, "seeds": rows}
         atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
         columns = ["untrained", "trained", "Greedy", *([] if shift else ["MILP"])]
