@@ -186,8 +186,15 @@ class TAMPolicy(BasePolicy):
                 "mixer": (mixer, tuple(MIXERS)),
             }
         )
-        counts = dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds, decision_samples=decision_samples)
-        check_counts({**counts, "select_decision_samples": select_decision_samples})
+        check_counts(
+            dict(
+                hidden_dim=hidden_dim,
+                n_critics=n_critics,
+                rounds=rounds,
+                decision_samples=decision_samples,
+                select_decision_samples=select_decision_samples,
+            )
+        )
         if not (isinstance(select_pair_hidden, int) and select_pair_hidden >= 0):
             raise ValueError(f"select_pair_hidden must be an integer ≥ 0 (0: no pair MLP), got {select_pair_hidden!r}")
         self.select_pair_hidden = select_pair_hidden
