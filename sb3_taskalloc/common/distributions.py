@@ -42,8 +42,8 @@ def masked_pick(masked_logits: th.Tensor, deterministic: bool, generator: th.Gen
     softmax by the Gumbel-max trick (``generator``, by default torch's global RNG, so ``set_random_seed`` applies).
     No softmax is computed."""
     if not deterministic:
-        shape, like = masked_logits.shape, dict(dtype=masked_logits.dtype, device=masked_logits.device)
-        u = th.rand(shape, generator=generator, **like).clamp_(1e-10, 1.0 - 1e-7)  # type: ignore[call-overload]
+        u = th.rand(masked_logits.shape, generator=generator, dtype=masked_logits.dtype, device=masked_logits.device)
+        u = u.clamp_(1e-10, 1.0 - 1e-7)
         masked_logits = masked_logits - th.log(-th.log(u))
     return th.argmax(masked_logits, dim=-1)
 

@@ -566,8 +566,9 @@ class LearnRun:
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
             model_digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
             done = self.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{self.key}.json")
-            if done.exists() and json.loads(done.read_text()).get("model_digest") == model_digest:
-                rows.append(json.loads(done.read_text()))
+            saved = json.loads(done.read_text()) if done.exists() else {}
+            if saved.get("model_digest") == model_digest:
+                rows.append(saved)
                 continue
             seeds = eval_seeds(seed, self.eval_episodes)
             trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
