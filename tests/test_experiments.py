@@ -541,6 +541,15 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert both.name == "EPT_decision_samples_2_select_decision_samples_3.md"
     assert "--decision-samples 2 --select-decision-samples 3`" in both.read_text()
     assert json.loads(both.with_suffix(".json").read_text())["select_decision_samples"] == 3
+    import sb3_taskalloc.two_stage_sac.policies as policies
+    from sb3_taskalloc.two_stage_sac.select_stage import cover_search
+
+    solved = []  # each task's exact cover of its candidates, solved at decision time
+    monkeypatch.setattr(policies, "cover_search", lambda *a, **k: solved.append(1) or cover_search(*a, **k))
+    exact = run.reevaluate(select_decision_exact=True)
+    assert len(solved) > 0
+    assert exact.name == "EPT_select_decision_exact.md" and "--select-decision-exact`" in exact.read_text()
+    assert json.loads(exact.with_suffix(".json").read_text())["select_decision_exact"] is True
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.

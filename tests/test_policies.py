@@ -268,6 +268,54 @@ def test_select_decision_samples_take_each_tasks_most_profitable_team():
             make_policy(env, **bad)
 
 
+def test_select_decision_exact_sends_each_tasks_exact_cover():
+    """With ``select_decision_exact`` each task of a deterministic decision sends a team of its own candidates as
+    profitable as the exact most profitable cover of those candidates (solved here task by task), never less than the
+    team search's and more in some of these RBF tasks; the pre-assignment is the argmax's, sampled decisions do not
+    search, and a non-bool value is refused."""
+    from sb3_taskalloc.baselines.milp import max_profit_cover
+
+    env = gym.make("TaskAlloc/RBF-v0")
+    plain, searching, exact = (
+        make_policy(env, **kw) for kw in ({}, {"select_decision_samples": 16}, {"select_decision_exact": True})
+    )
+    obs, states = env.reset(seed=0)[0], []
+    for t in range(40):  # states of the policy's own episode, once apples have gathered
+        states += [obs] if t % 5 == 4 else []
+        obs = env.step(plain.predict(obs, deterministic=True)[0])[0]
+    view = parse_obs(obs_as_tensor({k: np.stack([o[k] for o in states]) for k in states[0]}, th.device("cpu")))
+    searching.load_state_dict(plain.state_dict())
+    exact.load_state_dict(plain.state_dict())
+    with th.no_grad():
+        found, best = searching.decide(view, deterministic=True), exact.decide(view, deterministic=True)
+        assert th.equal(best.candidates, plain.decide(view, deterministic=True).candidates)
+
+        def task_profits(decision) -> th.Tensor:  # (B, M): r_j − Σ pair costs of j's sent team, 0 where none is sent
+            team = (decision.pick_rank >= 0) & decision.kept.unsqueeze(-1)
+            supplied = th.einsum("bmn,bnk->bmk", team.float(), view.supply)
+            assert bool((supplied >= view.demand - 1e-5).all(-1)[decision.kept].all())
+            assert bool((team <= decision.candidates).all())
+            return decision.kept * (view.reward - (team.float() * view.pair_cost.transpose(1, 2)).sum(-1))
+
+        p_search, p_exact = task_profits(found), task_profits(best)
+        assert bool((p_exact >= p_search - 1e-5).all()) and bool((p_exact > p_search + 1e-5).any())
+        supply, demand, reward, cost = (x.double().numpy() for x in (view.supply, view.demand, view.reward, view.pair_cost))
+        solved = 0
+        for b, j in zip(*np.nonzero(best.candidates.any(-1).numpy()), strict=True):
+            ents = np.flatnonzero(best.candidates[b, j].numpy())
+            _, _, res = max_profit_cover(supply[b, ents], demand[b, [j]], reward[b, [j]], cost[b][ents][:, [j]])
+            optimum = max(0.0, -float(res.fun))
+            assert float(p_exact[b, j]) == pytest.approx(optimum, rel=1e-4, abs=1e-4)
+            solved += optimum > 0
+        assert solved > 0
+        th.manual_seed(1)
+        sampled = plain.decide(view, deterministic=False).env_action
+        th.manual_seed(1)
+        assert th.equal(exact.decide(view, deterministic=False).env_action, sampled)
+    with pytest.raises(ValueError, match="select_decision_exact"):
+        make_policy(env, select_decision_exact=1)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "agnostic"),
     [({}, True), ({"preassign": False}, True), ({"encoder": "mlp"}, False), ({"mixer": "global"}, False)],

@@ -26,6 +26,7 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
         {"encoder": "mlp"},
         {"mixer": "global"},
         {"rounds": 2, "decision_samples": 8, "select_decision_samples": 4},
+        {"select_decision_exact": True},
         {"select_pair_hidden": 8},
     ],
 )

@@ -82,6 +82,10 @@ def main(argv: list[str] | None = None) -> None:
         "--select-decision-samples", type=int, default=1, metavar="K",
         help="then evaluate them deciding with a search of K teams per task (with --decision-samples: both searches)",
     )  # fmt: skip
+    learn.add_argument(
+        "--select-decision-exact", action="store_true",
+        help="then evaluate them with each task's exact cover of its candidates at decision time (with the searches above)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
 
     import torch as th
@@ -137,12 +141,12 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     path = run.run(jobs=args.jobs)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
-    evaluations: list[tuple[str | None, int, int]] = [(args.zero_shot, 1, 1)] if args.zero_shot else []
-    searches = (args.decision_samples, args.select_decision_samples)
-    if max(searches) > 1:
+    evaluations: list[tuple[str | None, int, int, bool]] = [(args.zero_shot, 1, 1, False)] if args.zero_shot else []
+    searches = (args.decision_samples, args.select_decision_samples, args.select_decision_exact)
+    if max(searches[:2]) > 1 or args.select_decision_exact:
         evaluations += [(None, *searches), *([(args.zero_shot, *searches)] if args.zero_shot else [])]
-    for shift, samples, teams in evaluations:
-        again = run.reevaluate(shift, samples, teams)
+    for shift, samples, teams, exact in evaluations:
+        again = run.reevaluate(shift, samples, teams, exact)
         print(again.read_text())
         print(f"wrote {again}, {again.with_suffix('.json')}")
 

@@ -543,12 +543,19 @@ class LearnRun:
         ``<out>/<env>_zero_shot_<shift>.md`` and ``.json``. :return: the Markdown path."""
         return self.reevaluate(shift)
 
-    def reevaluate(self, shift: str | None = None, decision_samples: int = 1, select_decision_samples: int = 1) -> Path:
+    def reevaluate(
+        self,
+        shift: str | None = None,
+        decision_samples: int = 1,
+        select_decision_samples: int = 1,
+        select_decision_exact: bool = False,
+    ) -> Path:
         """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
         env (``shift``, zero-shot) or of the training env, deciding with decision-time search of ``decision_samples``
-        pre-assignments and ``select_decision_samples`` teams per task (:class:`~sb3_taskalloc.TAMPolicy`'s keywords of
-        those names; 1: the argmax), against Greedy (and the per-step MILP on the training env); writes
-        ``<out>/<env>[_zero_shot_<shift>][_decision_samples_<K>][_select_decision_samples_<K_s>].md`` and ``.json``.
+        pre-assignments, ``select_decision_samples`` teams per task and, with ``select_decision_exact``, each task's exact
+        cover of its candidates (:class:`~sb3_taskalloc.TAMPolicy`'s keywords of those names; 1 and False: the argmax),
+        against Greedy (and the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>]
+        [_decision_samples_<K>][_select_decision_samples_<K_s>][_select_decision_exact].md`` and ``.json``.
         Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes, under a digest
         of its model file, so an interrupted re-evaluation resumes at the seed it stopped in. :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
@@ -557,8 +564,11 @@ class LearnRun:
         env_id = f"TaskAlloc/{shift}-v0" if shift else self.env_id
         searched = f"_decision_samples_{decision_samples}" if decision_samples > 1 else ""
         searched += f"_select_decision_samples_{select_decision_samples}" if select_decision_samples > 1 else ""
+        searched += "_select_decision_exact" if select_decision_exact else ""
         stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
-        searches = {"decision_samples": decision_samples, "select_decision_samples": select_decision_samples}
+        searches: dict[str, Any] = {"decision_samples": decision_samples, "select_decision_samples": select_decision_samples}
+        if select_decision_exact:  # named only when set: the files of the other searches keep their contents
+            searches["select_decision_exact"] = True
         rows: list[dict[str, Any]] = []
         for seed in range(self.seeds):
             path = self.seed_path(seed).with_suffix(".zip")
@@ -589,9 +599,11 @@ class LearnRun:
         how = "zero-shot" if shift else "held-out episodes"
         how += f", decision-time search of {decision_samples} pre-assignments" if decision_samples > 1 else ""
         how += f", decision-time search of {select_decision_samples} teams per task" if select_decision_samples > 1 else ""
+        how += ", each task's exact cover of its candidates at decision time" if select_decision_exact else ""
         flags = f" --zero-shot {shift}" if shift else ""
         flags += f" --decision-samples {decision_samples}" if decision_samples > 1 else ""
         flags += f" --select-decision-samples {select_decision_samples}" if select_decision_samples > 1 else ""
+        flags += " --select-decision-exact" if select_decision_exact else ""
         lines = [
             f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
             "",

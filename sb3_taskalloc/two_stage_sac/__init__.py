@@ -131,6 +131,13 @@ published code):
    ``select_decision_temperature``; all tasks and samples decode in one batched pass. Candidate sets are disjoint,
    so the tasks' best teams together are one decision, never less profitable in the step than the argmax's. With
    ``decision_samples`` (detail 16's decision-time search) the pre-assignment is chosen first, on the argmax teams.
+21. Decision-time exact covers (``TAMPolicy(select_decision_exact=True)``, not in the paper): detail 18's exact teacher
+   at decision time. Every task of every pre-assign round also weighs the exact most profitable cover of its own
+   candidates (the per-step MILP's formulation restricted to the task's candidate pairs, one HiGHS solve per round) and
+   sends it where it beats every decoded team. The per-step MILP chooses which entity serves which task and the teams in
+   one problem; here the learned pre-assignment chooses the candidates and the solver only the team among them, so the
+   two differ exactly by the pre-assignment, and the policy's untrained rule with the same covers measures what
+   learning adds to it.
 """
 
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

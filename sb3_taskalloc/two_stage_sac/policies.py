@@ -29,7 +29,9 @@ from sb3_taskalloc.common.torch_layers import (
 from sb3_taskalloc.common.utils import check_choices, check_counts
 from sb3_taskalloc.two_stage_sac.select_stage import (
     Decision,
+    SelectSearchResult,
     SelectState,
+    cover_search,
     decode_round,
     env_action_of,
     sampled_search,
@@ -114,6 +116,11 @@ class TAMPolicy(BasePolicy):
         ``select_decision_temperature`` (:func:`.select_stage.select_search`, implementation detail 20), from the same
         stream as ``decision_samples``. Sampled decisions (training) do not search; ignored without pre-assignment
     :param select_decision_temperature: T of those sampled teams
+    :param select_decision_exact: in a deterministic decision each task of every round also weighs the exact most
+        profitable cover of its candidates (:func:`.select_stage.cover_search`: the per-step MILP's formulation on the
+        task's candidate pairs, one HiGHS solve per decision round on the CPU) and takes it where it is more profitable
+        than every decoded team (implementation detail 21). The pre-assignment stays the policy's; the teams are then
+        the best its candidates allow. Sampled decisions (training) do not search; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -159,6 +166,7 @@ class TAMPolicy(BasePolicy):
         decision_temperature: float = 2.0,
         select_decision_samples: int = 1,
         select_decision_temperature: float = 1.0,
+        select_decision_exact: bool = False,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -219,6 +227,8 @@ class TAMPolicy(BasePolicy):
         for name, scale in scales.items():
             if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
+        if not isinstance(select_decision_exact, bool):
+            raise ValueError(f"select_decision_exact must be True or False, got {select_decision_exact!r}")
         self.logit_scale = float(logit_scale)
         self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
@@ -227,6 +237,7 @@ class TAMPolicy(BasePolicy):
         self.decision_temperature = float(decision_temperature)
         self.select_decision_samples = select_decision_samples
         self.select_decision_temperature = float(select_decision_temperature)
+        self.select_decision_exact = select_decision_exact
         self._search_stream: th.Generator | None = None
         self.heuristic_init = heuristic_init
         self.rule_weights = dict(rule_weights or {})
@@ -384,6 +395,7 @@ class TAMPolicy(BasePolicy):
                 decision_temperature=self.decision_temperature,
                 select_decision_samples=self.select_decision_samples,
                 select_decision_temperature=self.select_decision_temperature,
+                select_decision_exact=self.select_decision_exact,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
@@ -484,15 +496,8 @@ class TAMPolicy(BasePolicy):
                 c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             if rounds_out is not None:
                 rounds_out.append((view, c))
-            if deterministic and not uniform and self.select_decision_samples > 1:
-                teams = select_search(
-                    self.selector.head,
-                    view,
-                    c,
-                    self.select_decision_samples,
-                    self.select_decision_temperature,
-                    self._stream(view),
-                )
+            if deterministic and not uniform and (self.select_decision_samples > 1 or self.select_decision_exact):
+                teams = self._search_teams(view, c)
                 rank, kept = teams.rank, teams.profit > 0  # a task's profit is positive exactly where its team is kept
             else:
                 st = self.select_round(view, c, deterministic, uniform)
@@ -510,6 +515,22 @@ class TAMPolicy(BasePolicy):
                 break
         assert first is not None
         return first._replace(env_action=env_action)
+
+    def _search_teams(self, view: ObsView, task_of: th.Tensor) -> SelectSearchResult:
+        """Each task's most profitable team of the decision-time team search: the pointer's argmax team, its sampled
+        teams (``select_decision_samples``) and, with ``select_decision_exact``, the exact cover of its candidates;
+        the earlier of equally profitable teams wins (implementation details 20 and 21)."""
+        head = self.selector.head
+        found = select_search(
+            head, view, task_of, self.select_decision_samples, self.select_decision_temperature, self._stream(view)
+        )
+        if not self.select_decision_exact:
+            return found
+        exact = cover_search(head, view, task_of)
+        better = exact.profit > found.profit
+        return SelectSearchResult(
+            th.where(better.unsqueeze(-1), exact.rank, found.rank), th.where(better, exact.profit, found.profit), found.base
+        )
 
     def _stream(self, view: ObsView) -> th.Generator:
         """The random stream of the decision-time search, on the observations' device, seeded at 0 when first used."""
