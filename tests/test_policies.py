@@ -10,8 +10,8 @@ from stable_baselines3.common.utils import obs_as_tensor
 
 from envs.rendering import random_valid_action
 from sb3_taskalloc import TAMPolicy
-from sb3_taskalloc.common.torch_layers import parse_obs
-from sb3_taskalloc.two_stage_sac.select_stage import SelectState, select_features
+from sb3_taskalloc.common.torch_layers import ObsView, parse_obs
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, select_features
 
 VARIANTS = {
     "full": {},
@@ -231,32 +231,41 @@ def test_decision_samples_take_the_most_profitable_first_round():
             make_policy(env, **bad)
 
 
+def episode_view(env: gym.Env, policy: TAMPolicy) -> ObsView:
+    """Every fifth state of the first 40 steps of ``policy``'s own deterministic RBF episode (reset seed 0), once apples
+    have gathered, as one batch."""
+    obs, states = env.reset(seed=0)[0], []
+    for t in range(40):
+        states += [obs] if t % 5 == 4 else []
+        obs = env.step(policy.predict(obs, deterministic=True)[0])[0]
+    return parse_obs(obs_as_tensor({k: np.stack([o[k] for o in states]) for k in states[0]}, th.device("cpu")))
+
+
+def sent_task_profits(decision: Decision, view: ObsView) -> th.Tensor:
+    """(B, M) r_j − Σ pair costs of the team task j sends, 0 where none is sent; asserts that every kept team covers
+    its task and is made of the task's candidates."""
+    team = (decision.pick_rank >= 0) & decision.kept.unsqueeze(-1)  # (B, M, N)
+    supplied = th.einsum("bmn,bnk->bmk", team.float(), view.supply)
+    assert bool((supplied >= view.demand - 1e-5).all(-1)[decision.kept].all())  # every kept team covers its task
+    assert bool((team <= decision.candidates).all())  # and is made of the task's candidates
+    cost = (team.float() * view.pair_cost.transpose(1, 2)).sum(-1)
+    return decision.kept * (view.reward - cost)
+
+
 def test_select_decision_samples_take_each_tasks_most_profitable_team():
     """With ``select_decision_samples`` K_s each task of a deterministic decision sends the best, by its profit, of the
     pointer's argmax team and K_s − 1 sampled ones: a team of its own candidates that covers it, never less profitable
     than the argmax's and more in some of these RBF tasks; reproducible, and sampled decisions do not search."""
     env = gym.make("TaskAlloc/RBF-v0")
     plain, searching, again = (make_policy(env, select_decision_samples=k) for k in (1, 16, 16))
-    obs, states = env.reset(seed=0)[0], []
-    for t in range(40):  # states of the policy's own episode, once apples have gathered
-        states += [obs] if t % 5 == 4 else []
-        obs = env.step(plain.predict(obs, deterministic=True)[0])[0]
-    view = parse_obs(obs_as_tensor({k: np.stack([o[k] for o in states]) for k in states[0]}, th.device("cpu")))
+    view = episode_view(env, plain)
     searching.load_state_dict(plain.state_dict())
     again.load_state_dict(plain.state_dict())
-
-    def task_profits(decision) -> th.Tensor:  # (B, M): r_j − Σ pair costs of j's sent team, 0 where none is sent
-        team = (decision.pick_rank >= 0) & decision.kept.unsqueeze(-1)  # (B, M, N)
-        supplied = th.einsum("bmn,bnk->bmk", team.float(), view.supply)
-        assert bool((supplied >= view.demand - 1e-5).all(-1)[decision.kept].all())  # every kept team covers its task
-        assert bool((team <= decision.candidates).all())  # and is made of the task's candidates
-        cost = (team.float() * view.pair_cost.transpose(1, 2)).sum(-1)
-        return decision.kept * (view.reward - cost)
 
     with th.no_grad():
         base, best = plain.decide(view, deterministic=True), searching.decide(view, deterministic=True)
         assert th.equal(base.candidates, best.candidates)  # the pre-assignment is the argmax's
-        p0, p1 = task_profits(base), task_profits(best)
+        p0, p1 = sent_task_profits(base, view), sent_task_profits(best, view)
         assert bool((p1 >= p0 - 1e-5).all()) and bool((p1 > p0 + 1e-5).any())
         assert th.equal(again.decide(view, deterministic=True).env_action, best.env_action)
         th.manual_seed(1)
@@ -279,25 +288,14 @@ def test_select_decision_exact_sends_each_tasks_exact_cover():
     plain, searching, exact = (
         make_policy(env, **kw) for kw in ({}, {"select_decision_samples": 16}, {"select_decision_exact": True})
     )
-    obs, states = env.reset(seed=0)[0], []
-    for t in range(40):  # states of the policy's own episode, once apples have gathered
-        states += [obs] if t % 5 == 4 else []
-        obs = env.step(plain.predict(obs, deterministic=True)[0])[0]
-    view = parse_obs(obs_as_tensor({k: np.stack([o[k] for o in states]) for k in states[0]}, th.device("cpu")))
+    view = episode_view(env, plain)
     searching.load_state_dict(plain.state_dict())
     exact.load_state_dict(plain.state_dict())
     with th.no_grad():
         found, best = searching.decide(view, deterministic=True), exact.decide(view, deterministic=True)
         assert th.equal(best.candidates, plain.decide(view, deterministic=True).candidates)
 
-        def task_profits(decision) -> th.Tensor:  # (B, M): r_j − Σ pair costs of j's sent team, 0 where none is sent
-            team = (decision.pick_rank >= 0) & decision.kept.unsqueeze(-1)
-            supplied = th.einsum("bmn,bnk->bmk", team.float(), view.supply)
-            assert bool((supplied >= view.demand - 1e-5).all(-1)[decision.kept].all())
-            assert bool((team <= decision.candidates).all())
-            return decision.kept * (view.reward - (team.float() * view.pair_cost.transpose(1, 2)).sum(-1))
-
-        p_search, p_exact = task_profits(found), task_profits(best)
+        p_search, p_exact = sent_task_profits(found, view), sent_task_profits(best, view)
         assert bool((p_exact >= p_search - 1e-5).all()) and bool((p_exact > p_search + 1e-5).any())
         supply, demand, reward, cost = (x.double().numpy() for x in (view.supply, view.demand, view.reward, view.pair_cost))
         solved = 0
