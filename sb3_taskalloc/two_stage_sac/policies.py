@@ -524,13 +524,7 @@ class TAMPolicy(BasePolicy):
         found = select_search(
             head, view, task_of, self.select_decision_samples, self.select_decision_temperature, self._stream(view)
         )
-        if not self.select_decision_exact:
-            return found
-        exact = cover_search(head, view, task_of)
-        better = exact.profit > found.profit
-        return SelectSearchResult(
-            th.where(better.unsqueeze(-1), exact.rank, found.rank), th.where(better, exact.profit, found.profit), found.base
-        )
+        return cover_search(head, view, task_of, against=found) if self.select_decision_exact else found
 
     def _stream(self, view: ObsView) -> th.Generator:
         """The random stream of the decision-time search, on the observations' device, seeded at 0 when first used."""

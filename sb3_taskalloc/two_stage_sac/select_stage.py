@@ -317,42 +317,66 @@ def select_search(
     return SelectSearchResult(rank, th.gather(profit, 1, best.unsqueeze(1)).squeeze(1), p0)
 
 
-def cover_search(head: PointerHead, view: ObsView, task_of: th.Tensor, time_limit: float = 1.0) -> SelectSearchResult:
-    """Per task, the better of the deterministic decode and the exact most profitable cover of its candidates
-    (:func:`~sb3_taskalloc.baselines.milp.max_profit_cover` on the candidate pairs alone, one HiGHS solve per batch row
-    on the CPU), by the task's profit (:func:`task_profit`); the deterministic decode wins ties (implementation detail
-    18). The cover's team is decoded by the pointer among its members alone, so its pick order is the pointer's own and
-    a distillation of it teaches which entities to pick, not an order.
+def exact_covers(view: ObsView, allowed: th.Tensor, time_limit: float = 1.0) -> th.Tensor:
+    """(B, N) the task each entity serves in the exact most profitable cover of the ``allowed`` pairs (−1: none):
+    :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone, one
+    HiGHS solve per batch row on the CPU.
 
-    :param head: the pointer actor
-    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param allowed: (B, N, M) bool pairs that may be assigned
     :param time_limit: HiGHS time limit per batch row (seconds); the best cover found is used when it is reached
     """
     import numpy as np
 
     from sb3_taskalloc.baselines.milp import max_profit_cover
 
-    base = decode_round(head, view, task_of, deterministic=True)
-    p0 = task_profit(base)
     tensors = (view.supply, view.demand, view.reward, view.pair_cost)
     supply, demand, reward, cost = (x.detach().double().cpu().numpy() for x in tensors)
-    tof = task_of.cpu().numpy()
-    members = np.full_like(tof, -1)
-    for b in range(tof.shape[0]):
-        ents = np.flatnonzero(tof[b] >= 0)
+    pairs = allowed.cpu().numpy()
+    members = np.full(pairs.shape[:2], -1, dtype=np.int64)
+    for b in range(pairs.shape[0]):
+        ents, tasks = np.flatnonzero(pairs[b].any(1)), np.flatnonzero(pairs[b].any(0))
         if len(ents) == 0:
             continue
-        tasks = np.unique(tof[b, ents])
-        allowed = tof[b, ents, None] == tasks[None, :]
         x, _, _ = max_profit_cover(
-            supply[b, ents], demand[b, tasks], reward[b, tasks], cost[b][np.ix_(ents, tasks)], allowed, time_limit
+            supply[b, ents],
+            demand[b, tasks],
+            reward[b, tasks],
+            cost[b][np.ix_(ents, tasks)],
+            pairs[b][np.ix_(ents, tasks)],
+            time_limit,
         )
         e, t = np.nonzero(x)
         members[b, ents[e]] = tasks[t]
-    cover = decode_round(head, view, th.as_tensor(members, device=task_of.device), deterministic=True)
+    return th.as_tensor(members, device=allowed.device)
+
+
+def cover_search(
+    head: PointerHead, view: ObsView, task_of: th.Tensor, time_limit: float = 1.0, against: SelectSearchResult | None = None
+) -> SelectSearchResult:
+    """Per task, the better of the teams ``against`` (default: the deterministic decode) and the exact most profitable
+    cover of its candidates (:func:`exact_covers` on the candidate pairs alone), by the task's profit
+    (:func:`task_profit`); the teams ``against`` win ties (implementation detail 18). The cover's team is decoded by the
+    pointer among its members alone, so its pick order is the pointer's own and a distillation of it teaches which
+    entities to pick, not an order.
+
+    :param head: the pointer actor
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param time_limit: HiGHS time limit per batch row (seconds); the best cover found is used when it is reached
+    :param against: an earlier search's teams on the same candidates (:func:`select_search`), so the deterministic
+        decode is not decoded twice
+    """
+    if against is None:
+        base = decode_round(head, view, task_of, deterministic=True)
+        p0 = task_profit(base)
+        against = SelectSearchResult(base.rank, p0, p0)
+    M = view.task_mask.shape[1]
+    allowed = task_of.unsqueeze(-1) == th.arange(M, device=task_of.device)
+    cover = decode_round(head, view, exact_covers(view, allowed, time_limit), deterministic=True)
     p1 = task_profit(cover)
-    better = p1 > p0
-    return SelectSearchResult(th.where(better.unsqueeze(-1), cover.rank, base.rank), th.where(better, p1, p0), p0)
+    better = p1 > against.profit
+    return SelectSearchResult(
+        th.where(better.unsqueeze(-1), cover.rank, against.rank), th.where(better, p1, against.profit), against.base
+    )
 
 
 class SearchResult(NamedTuple):
