@@ -550,6 +550,15 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert len(solved) > 0
     assert exact.name == "EPT_select_decision_exact.md" and "--select-decision-exact`" in exact.read_text()
     assert json.loads(exact.with_suffix(".json").read_text())["select_decision_exact"] is True
+    from sb3_taskalloc.two_stage_sac.select_stage import exact_covers
+
+    pruned = []  # the pre-assign rounds' exact covers of each entity's 2 most probable tasks
+    monkeypatch.setattr(policies, "exact_covers", lambda *a, **k: pruned.append(int(a[1].sum())) or exact_covers(*a, **k))
+    top = run.reevaluate(decision_exact_top=2)
+    assert len(pruned) > 0 and max(pruned) > 0
+    assert top.name == "EPT_decision_exact_top_2.md" and "--decision-exact-top 2`" in top.read_text()
+    assert "each entity's 2 most probable tasks" in top.read_text()
+    assert json.loads(top.with_suffix(".json").read_text())["decision_exact_top"] == 2
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.
@@ -645,3 +654,7 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     assert record["before_dagger"] == record["untrained"] and [p[0] for p in record["curve"]] == [0, 10]
     with pytest.raises(SystemExit):
         main(["learn", "--env", "Almighty", "--steps", "0", "--out", str(tmp_path / "cli")])
+    for bad in (["--decision-exact-top", "-1"], ["--decision-exact-top", "2", "--decision-samples", "4"]):
+        with pytest.raises(SystemExit):  # refused before any training
+            main(["learn", "--env", "Almighty", "--steps", "1", "--out", str(tmp_path / "cli"), *bad])
+    assert not (tmp_path / "cli").exists()

@@ -314,6 +314,51 @@ def test_select_decision_exact_sends_each_tasks_exact_cover():
         make_policy(env, select_decision_exact=1)
 
 
+def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_tasks():
+    """With ``decision_exact_top`` k each round of a deterministic decision pre-assigns by the exact most profitable
+    cover of the pairs joining each entity to one of its k most probable tasks: with k = 1 every candidate keeps its
+    argmax task, the first round is as profitable as each task's exact cover of the argmax's candidates, and the
+    candidates of the tasks the solver does not cover are left free for the next round; with k = M the first round is
+    worth the per-step MILP's optimum (solved here; 16 free robots keep it tractable). Sampled decisions do not search,
+    and bad values are refused."""
+    from sb3_taskalloc.baselines.milp import max_profit_cover
+
+    env = gym.make("TaskAlloc/RBF-v0")
+    M = env.observation_space["task_mask"].shape[0]
+    plain, exact, top1, every = (
+        make_policy(env, **kw)
+        for kw in ({}, {"select_decision_exact": True}, {"decision_exact_top": 1}, {"decision_exact_top": M})
+    )
+    view = episode_view(env, plain)
+    # At most 16 free robots per state, so that HiGHS proves every round's cover optimal within its time limit.
+    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 16))
+    for policy in (exact, top1, every):
+        policy.load_state_dict(plain.state_dict())
+    with th.no_grad():
+        argmax, by_task = plain.decide(view, deterministic=True), exact.decide(view, deterministic=True)
+        first, full = top1.decide(view, deterministic=True), every.decide(view, deterministic=True)
+        assert bool((first.candidates <= argmax.candidates).all())  # k = 1: the argmax's tasks, a subset of its pairs
+        assert bool((first.candidates.sum(-1) < argmax.candidates.sum(-1)).any())  # the uncovered tasks' left free
+        p_task, p_top1 = sent_task_profits(by_task, view).sum(-1), sent_task_profits(first, view).sum(-1)
+        th.testing.assert_close(p_top1, p_task, rtol=1e-5, atol=1e-4)  # disjoint candidate sets: one cover per task
+        p_full = sent_task_profits(full, view).sum(-1)
+        supply, demand, reward, cost = (x.double().numpy() for x in (view.supply, view.demand, view.reward, view.pair_cost))
+        for b in range(p_full.shape[0]):
+            free, open_ = np.flatnonzero(view.entity_mask[b].numpy()), np.flatnonzero(view.task_mask[b].numpy())
+            _, _, res = max_profit_cover(supply[b, free], demand[b, open_], reward[b, open_], cost[b][np.ix_(free, open_)])
+            assert float(p_full[b]) == pytest.approx(max(0.0, -float(res.fun)), rel=1e-4, abs=1e-4)
+        assert bool((p_full >= p_top1 - 1e-4).all()) and bool((p_full > p_top1 + 1e-4).any())
+        th.manual_seed(1)
+        sampled = plain.decide(view, deterministic=False).env_action
+        th.manual_seed(1)
+        assert th.equal(top1.decide(view, deterministic=False).env_action, sampled)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="decision_exact_top"):
+            make_policy(env, decision_exact_top=bad)
+    with pytest.raises(ValueError, match="decision_samples"):
+        make_policy(env, decision_exact_top=2, decision_samples=8)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "agnostic"),
     [({}, True), ({"preassign": False}, True), ({"encoder": "mlp"}, False), ({"mixer": "global"}, False)],

@@ -27,6 +27,7 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
         {"mixer": "global"},
         {"rounds": 2, "decision_samples": 8, "select_decision_samples": 4},
         {"select_decision_exact": True},
+        {"rounds": 2, "decision_exact_top": 2},
         {"select_pair_hidden": 8},
     ],
 )

@@ -7,6 +7,7 @@ import argparse
 import shutil
 import sys
 from pathlib import Path
+from typing import Any
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -86,6 +87,11 @@ def main(argv: list[str] | None = None) -> None:
         "--select-decision-exact", action="store_true",
         help="then evaluate them with each task's exact cover of its candidates at decision time (with the searches above)",
     )  # fmt: skip
+    learn.add_argument(
+        "--decision-exact-top", type=int, default=0, metavar="K",
+        help="then evaluate them pre-assigning by the exact cover of each entity's K most probable tasks (with the team "
+        "searches above; not with --decision-samples)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
 
     import torch as th
@@ -118,7 +124,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
+    from sb3_taskalloc.experiments.learn import DECISION_SEARCHES, PLANNERS, LearnRun
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
@@ -135,18 +141,20 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                    out=args.out, validation_episodes=args.validation_episodes,
                    select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation)  # fmt: skip
-    for flag in ("decision_samples", "select_decision_samples"):
-        if getattr(args, flag) < 1:
-            parser.error(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    for flag, least in (("decision_samples", 1), ("select_decision_samples", 1), ("decision_exact_top", 0)):
+        if getattr(args, flag) < least:
+            parser.error(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")
+    if args.decision_exact_top and args.decision_samples > 1:
+        parser.error("--decision-exact-top and --decision-samples both choose the pre-assignment: give one of them")
     path = run.run(jobs=args.jobs)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
-    evaluations: list[tuple[str | None, int, int, bool]] = [(args.zero_shot, 1, 1, False)] if args.zero_shot else []
-    searches = (args.decision_samples, args.select_decision_samples, args.select_decision_exact)
-    if max(searches[:2]) > 1 or args.select_decision_exact:
-        evaluations += [(None, *searches), *([(args.zero_shot, *searches)] if args.zero_shot else [])]
-    for shift, samples, teams, exact in evaluations:
-        again = run.reevaluate(shift, samples, teams, exact)
+    evaluations: list[tuple[str | None, dict[str, Any]]] = [(args.zero_shot, {})] if args.zero_shot else []
+    searches = {name: getattr(args, name) for name, (off, _) in DECISION_SEARCHES.items() if getattr(args, name) != off}
+    if searches:
+        evaluations += [(None, searches), *([(args.zero_shot, searches)] if args.zero_shot else [])]
+    for shift, searched in evaluations:
+        again = run.reevaluate(shift, **searched)
         print(again.read_text())
         print(f"wrote {again}, {again.with_suffix('.json')}")
 

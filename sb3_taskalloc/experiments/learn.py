@@ -61,6 +61,17 @@ CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "fre
 CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_corr", "advantage_ceiling", "advantage_sign"]
 
 
+#: The decision-time searches of :meth:`LearnRun.reevaluate`, in the order of its file names: each
+#: :class:`~sb3_taskalloc.TAMPolicy` keyword's value when off, and the words of the report's title when on.
+DECISION_SEARCHES: dict[str, tuple[int | bool, str]] = {
+    "decision_samples": (1, "decision-time search of {} pre-assignments"),
+    "select_decision_samples": (1, "decision-time search of {} teams per task"),
+    "select_decision_exact": (False, "each task's exact cover of its candidates at decision time"),
+    "decision_exact_top": (0, "pre-assigned by the exact cover of each entity's {} most probable tasks at decision time"),
+}
+FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
+
+
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
     """Whether every record holds the critic's figures ``keys`` of the branched rollouts (:data:`CRITIC_BRANCHED`, or
     :data:`CRITIC_ADVANTAGE`: each set came with a later version of :mod:`.diagnose`)."""
@@ -549,26 +560,29 @@ class LearnRun:
         decision_samples: int = 1,
         select_decision_samples: int = 1,
         select_decision_exact: bool = False,
+        decision_exact_top: int = 0,
     ) -> Path:
         """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
-        env (``shift``, zero-shot) or of the training env, deciding with decision-time search of ``decision_samples``
-        pre-assignments, ``select_decision_samples`` teams per task and, with ``select_decision_exact``, each task's exact
-        cover of its candidates (:class:`~sb3_taskalloc.TAMPolicy`'s keywords of those names; 1 and False: the argmax),
-        against Greedy (and the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>]
-        [_decision_samples_<K>][_select_decision_samples_<K_s>][_select_decision_exact].md`` and ``.json``.
-        Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes, under a digest
-        of its model file, so an interrupted re-evaluation resumes at the seed it stopped in. :return: the Markdown path."""
+        env (``shift``, zero-shot) or of the training env, deciding with the decision-time searches of
+        :class:`~sb3_taskalloc.TAMPolicy`'s keywords of these names (:data:`DECISION_SEARCHES`; their defaults: the
+        argmax), against Greedy (and the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>]``
+        followed by each search that is on (``_decision_samples_<K>``, ``_select_decision_exact``, ...), ``.md`` and
+        ``.json``. Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes,
+        under a digest of its model file, so an interrupted re-evaluation resumes at the seed it stopped in.
+        :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
 
         env_id = f"TaskAlloc/{shift}-v0" if shift else self.env_id
-        searched = f"_decision_samples_{decision_samples}" if decision_samples > 1 else ""
-        searched += f"_select_decision_samples_{select_decision_samples}" if select_decision_samples > 1 else ""
-        searched += "_select_decision_exact" if select_decision_exact else ""
+        values = dict(zip(DECISION_SEARCHES, (decision_samples, select_decision_samples, select_decision_exact,
+                                              decision_exact_top), strict=True))  # fmt: skip
+        on = [(name, value) for name, value in values.items() if value != DECISION_SEARCHES[name][0]]
+        searched = "".join(f"_{name}" + ("" if value is True else f"_{value}") for name, value in on)
         stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
-        searches: dict[str, Any] = {"decision_samples": decision_samples, "select_decision_samples": select_decision_samples}
-        if select_decision_exact:  # named only when set: the files of the other searches keep their contents
-            searches["select_decision_exact"] = True
+        # The first two searches are always named, the others only when on, so earlier searches' files keep their contents.
+        searches: dict[str, Any] = {
+            name: value for name, value in values.items() if (name, value) in on or name in FIRST_SEARCHES
+        }
         rows: list[dict[str, Any]] = []
         for seed in range(self.seeds):
             path = self.seed_path(seed).with_suffix(".zip")
@@ -596,14 +610,9 @@ class LearnRun:
         atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
         columns = ["untrained", "trained", "Greedy", *([] if shift else ["MILP"])]
         means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
-        how = "zero-shot" if shift else "held-out episodes"
-        how += f", decision-time search of {decision_samples} pre-assignments" if decision_samples > 1 else ""
-        how += f", decision-time search of {select_decision_samples} teams per task" if select_decision_samples > 1 else ""
-        how += ", each task's exact cover of its candidates at decision time" if select_decision_exact else ""
+        how = ", ".join(["zero-shot" if shift else "held-out episodes", *(DECISION_SEARCHES[n][1].format(v) for n, v in on)])
         flags = f" --zero-shot {shift}" if shift else ""
-        flags += f" --decision-samples {decision_samples}" if decision_samples > 1 else ""
-        flags += f" --select-decision-samples {select_decision_samples}" if select_decision_samples > 1 else ""
-        flags += " --select-decision-exact" if select_decision_exact else ""
+        flags += "".join(f" --{name.replace('_', '-')}" + ("" if value is True else f" {value}") for name, value in on)
         lines = [
             f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
             "",

@@ -34,6 +34,7 @@ from sb3_taskalloc.two_stage_sac.select_stage import (
     cover_search,
     decode_round,
     env_action_of,
+    exact_covers,
     sampled_search,
     select_search,
 )
@@ -121,6 +122,13 @@ class TAMPolicy(BasePolicy):
         task's candidate pairs, one HiGHS solve per decision round on the CPU) and takes it where it is more profitable
         than every decoded team (implementation detail 21). The pre-assignment stays the policy's; the teams are then
         the best its candidates allow. Sampled decisions (training) do not search; ignored without pre-assignment
+    :param decision_exact_top: decision-time exact pre-assignment (not in the paper; 0: off): in a deterministic decision
+        each round pre-assigns by the exact most profitable cover (:func:`.select_stage.exact_covers`) of the pairs that
+        join each free entity to one of its ``decision_exact_top`` most probable tasks under the pre-assign actor, and
+        its teams are weighed as with ``select_decision_exact``; entities outside the cover stay free for the next
+        round, where the tasks left uncovered are tried again (implementation detail 22). Larger values approach the
+        per-step MILP. Exclusive with ``decision_samples``; sampled decisions (training) do not search; ignored without
+        pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -167,6 +175,7 @@ class TAMPolicy(BasePolicy):
         select_decision_samples: int = 1,
         select_decision_temperature: float = 1.0,
         select_decision_exact: bool = False,
+        decision_exact_top: int = 0,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -229,6 +238,13 @@ class TAMPolicy(BasePolicy):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
         if not isinstance(select_decision_exact, bool):
             raise ValueError(f"select_decision_exact must be True or False, got {select_decision_exact!r}")
+        if not (isinstance(decision_exact_top, int) and not isinstance(decision_exact_top, bool) and decision_exact_top >= 0):
+            raise ValueError(f"decision_exact_top must be an integer ≥ 0 (0: off), got {decision_exact_top!r}")
+        if decision_exact_top and decision_samples > 1:
+            raise ValueError(
+                f"decision_exact_top={decision_exact_top} and decision_samples={decision_samples} both choose the "
+                "pre-assignment at decision time: set one of them"
+            )
         self.logit_scale = float(logit_scale)
         self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
@@ -238,6 +254,7 @@ class TAMPolicy(BasePolicy):
         self.select_decision_samples = select_decision_samples
         self.select_decision_temperature = float(select_decision_temperature)
         self.select_decision_exact = select_decision_exact
+        self.decision_exact_top = decision_exact_top
         self._search_stream: th.Generator | None = None
         self.heuristic_init = heuristic_init
         self.rule_weights = dict(rule_weights or {})
@@ -396,6 +413,7 @@ class TAMPolicy(BasePolicy):
                 select_decision_samples=self.select_decision_samples,
                 select_decision_temperature=self.select_decision_temperature,
                 select_decision_exact=self.select_decision_exact,
+                decision_exact_top=self.decision_exact_top,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
@@ -492,11 +510,14 @@ class TAMPolicy(BasePolicy):
                     dist, self.selector.head, view, self.decision_samples, self.decision_temperature, self._stream(view)
                 )
                 c = found.candidates
+            elif deterministic and not uniform and self.decision_exact_top:
+                c = self._exact_top_preassign(view, dist)
             else:
                 c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             if rounds_out is not None:
                 rounds_out.append((view, c))
-            if deterministic and not uniform and (self.select_decision_samples > 1 or self.select_decision_exact):
+            searched = self.select_decision_samples > 1 or self.select_decision_exact or self.decision_exact_top
+            if deterministic and not uniform and searched:
                 teams = self._search_teams(view, c)
                 rank, kept = teams.rank, teams.profit > 0  # a task's profit is positive exactly where its team is kept
             else:
@@ -524,7 +545,19 @@ class TAMPolicy(BasePolicy):
         found = select_search(
             head, view, task_of, self.select_decision_samples, self.select_decision_temperature, self._stream(view)
         )
-        return cover_search(head, view, task_of, against=found) if self.select_decision_exact else found
+        exact = self.select_decision_exact or self.decision_exact_top > 0
+        return cover_search(head, view, task_of, against=found) if exact else found
+
+    def _exact_top_preassign(self, view: ObsView, dist: MaskedCategorical) -> th.Tensor:
+        """(B, N) the pre-assignment of ``decision_exact_top``: the exact most profitable cover of the pairs that join
+        each free entity to one of its ``decision_exact_top`` most probable tasks under π (:func:`.exact_covers`);
+        entities outside the cover are no task's candidates and stay for the next round (implementation detail 22)."""
+        M = view.task_mask.shape[1]
+        # A stable sort breaks ties between equally probable tasks toward the lower slot, as the argmax does, so k = 1
+        # keeps the argmax's own tasks (topk's order among ties is unspecified).
+        top = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices[..., : min(self.decision_exact_top, M)]
+        chosen = th.zeros_like(view.valid).scatter_(-1, top, True)
+        return exact_covers(view, chosen & view.valid & view.assignable.unsqueeze(-1))
 
     def _stream(self, view: ObsView) -> th.Generator:
         """The random stream of the decision-time search, on the observations' device, seeded at 0 when first used."""
