@@ -155,6 +155,15 @@ def _state_latencies_ms(agent: Any, states: list[dict[str, np.ndarray]], device:
 SEARCH = 32
 #: Teams per task of the decision-time team search row (``TAMPolicy(select_decision_samples)``; implementation detail 20).
 TEAM_SEARCH = 64
+#: The trained policy's rows: its decision-time searches (:class:`~sb3_taskalloc.TAMPolicy` keywords; implementation
+#: details 16, 20, 21 and 22) and the words they add to the row's name.
+SEARCH_ROWS: tuple[tuple[dict[str, Any], str], ...] = (
+    ({}, ""),
+    ({"decision_samples": SEARCH}, f", search of {SEARCH}"),
+    ({"select_decision_samples": TEAM_SEARCH}, f", team search of {TEAM_SEARCH}"),
+    ({"select_decision_exact": True}, ", exact covers"),
+    ({"decision_exact_top": 1}, ", exact pre-assignment among each entity's top task"),
+)
 
 
 def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[dict[str, Any]]:
@@ -183,25 +192,21 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
     states = _episode_states(trained, env_id, seeds)
     rows = []
     for device in devices:
-        variants = (("trained", trained, 1, 1, False), ("untrained", untrained, 1, 1, False),
-                    ("trained", trained, SEARCH, 1, False), ("trained", trained, 1, TEAM_SEARCH, False),
-                    ("trained", trained, 1, 1, True))  # fmt: skip
-        for name, agent, samples, teams, exact in variants:
+        searched = [("trained", trained, *row) for row in SEARCH_ROWS]
+        for name, agent, searches, words in [searched[0], ("untrained", untrained, {}, ""), *searched[1:]]:
             agent.policy.to(device)
             agent.device = th.device(device)
-            agent.policy.decision_samples, agent.policy.select_decision_samples = samples, teams
-            agent.policy.select_decision_exact = exact
+            before = {keyword: getattr(agent.policy, keyword) for keyword in searches}
+            for keyword, value in searches.items():
+                setattr(agent.policy, keyword, value)
             ms = _state_latencies_ms(agent, states, device)
-            agent.policy.decision_samples = agent.policy.select_decision_samples = 1
-            agent.policy.select_decision_exact = False
-            label = f"TAMPolicy {name}" + (f", search of {samples}" if samples > 1 else "")
-            label += f", team search of {teams}" if teams > 1 else ""
-            label += ", exact covers" if exact else ""
+            for keyword, value in before.items():
+                setattr(agent.policy, keyword, value)
             rows.append(
-                {"device": device, "policy": label,
+                {"device": device, "policy": f"TAMPolicy {name}{words}",
                  "states": len(states), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
                  "model": source if name == "trained" else None,
-                 "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if samples == teams == 1 and not exact else None}
+                 "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if not searches else None}
             )  # fmt: skip
     ms = _state_latencies_ms(GreedyAllocator(), states)
     rows.append({"device": "cpu", "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
