@@ -557,7 +557,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     top = run.reevaluate(decision_exact_top=2)
     assert len(pruned) > 0 and max(pruned) > 0
     assert top.name == "EPT_decision_exact_top_2.md" and "--decision-exact-top 2`" in top.read_text()
-    assert "each entity's 2 most probable tasks" in top.read_text()
+    assert "each entity's top 2 tasks" in top.read_text()
     assert json.loads(top.with_suffix(".json").read_text())["decision_exact_top"] == 2
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text

@@ -67,7 +67,7 @@ DECISION_SEARCHES: dict[str, tuple[int | bool, str]] = {
     "decision_samples": (1, "decision-time search of {} pre-assignments"),
     "select_decision_samples": (1, "decision-time search of {} teams per task"),
     "select_decision_exact": (False, "each task's exact cover of its candidates at decision time"),
-    "decision_exact_top": (0, "pre-assigned by the exact cover of each entity's {} most probable tasks at decision time"),
+    "decision_exact_top": (0, "pre-assigned by the exact cover among each entity's top {} tasks at decision time"),
 }
 FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
 
