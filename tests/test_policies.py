@@ -317,22 +317,30 @@ def test_select_decision_exact_sends_each_tasks_exact_cover():
 def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_tasks():
     """With ``decision_exact_top`` k each round of a deterministic decision pre-assigns by the exact most profitable
     cover of the pairs joining each entity to one of its k most probable tasks: with k = 1 every candidate keeps its
-    argmax task, the first round is as profitable as each task's exact cover of the argmax's candidates, and the
-    candidates of the tasks the solver does not cover are left free for the next round; with k = M the first round is
+    argmax task, the first round is as profitable as each task's exact cover of the argmax's candidates, the
+    candidates of the tasks the solver does not cover are left free for the next round, and over three rounds the
+    decision is that of ``select_decision_exact``; with k = M the first round is
     worth the per-step MILP's optimum (solved here; 16 free robots keep it tractable). Sampled decisions do not search,
     and bad values are refused."""
     from sb3_taskalloc.baselines.milp import max_profit_cover
 
     env = gym.make("TaskAlloc/RBF-v0")
     M = env.observation_space["task_mask"].shape[0]
-    plain, exact, top1, every = (
+    plain, exact, top1, every, exact_rounds, top1_rounds = (
         make_policy(env, **kw)
-        for kw in ({}, {"select_decision_exact": True}, {"decision_exact_top": 1}, {"decision_exact_top": M})
+        for kw in (
+            {},
+            {"select_decision_exact": True},
+            {"decision_exact_top": 1},
+            {"decision_exact_top": M},
+            {"rounds": 3, "select_decision_exact": True},
+            {"rounds": 3, "decision_exact_top": 1},
+        )
     )
     view = episode_view(env, plain)
     # At most 16 free robots per state, so that HiGHS proves every round's cover optimal within its time limit.
     view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 16))
-    for policy in (exact, top1, every):
+    for policy in (exact, top1, every, exact_rounds, top1_rounds):
         policy.load_state_dict(plain.state_dict())
     with th.no_grad():
         argmax, by_task = plain.decide(view, deterministic=True), exact.decide(view, deterministic=True)
@@ -341,6 +349,8 @@ def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_ta
         assert bool((first.candidates.sum(-1) < argmax.candidates.sum(-1)).any())  # the uncovered tasks' left free
         p_task, p_top1 = sent_task_profits(by_task, view).sum(-1), sent_task_profits(first, view).sum(-1)
         th.testing.assert_close(p_top1, p_task, rtol=1e-5, atol=1e-4)  # disjoint candidate sets: one cover per task
+        # Over rounds the argmax's tasks count as tried, covered or not: k = 1 decides as the exact covers do.
+        assert th.equal(top1_rounds.decide(view, True).env_action, exact_rounds.decide(view, True).env_action)
         p_full = sent_task_profits(full, view).sum(-1)
         supply, demand, reward, cost = (x.double().numpy() for x in (view.supply, view.demand, view.reward, view.pair_cost))
         for b in range(p_full.shape[0]):

@@ -126,9 +126,9 @@ class TAMPolicy(BasePolicy):
         each round pre-assigns by the exact most profitable cover (:func:`.select_stage.exact_covers`) of the pairs that
         join each free entity to one of its ``decision_exact_top`` most probable tasks under the pre-assign actor, and
         its teams are weighed as with ``select_decision_exact``; entities outside the cover stay free for the next
-        round, where the tasks left uncovered are tried again (implementation detail 22). Larger values approach the
-        per-step MILP. Exclusive with ``decision_samples``; sampled decisions (training) do not search; ignored without
-        pre-assignment
+        round, and the round has tried the tasks it covers and those of the argmax's candidate sets (implementation
+        detail 22). 1 decides as ``select_decision_exact``; larger values approach the per-step MILP. Exclusive with
+        ``decision_samples``; sampled decisions (training) do not search; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -501,6 +501,7 @@ class TAMPolicy(BasePolicy):
         first: Decision | None = None
         env_action = th.full((B, N), M, dtype=th.long, device=view.pair_cost.device)
         for r in range(self.rounds):
+            argmax_tried: th.Tensor | None = None  # with decision_exact_top: the argmax's tasks, tried as in an argmax round
             if uniform:
                 dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid)
             else:
@@ -512,6 +513,7 @@ class TAMPolicy(BasePolicy):
                 c = found.candidates
             elif deterministic and not uniform and self.decision_exact_top:
                 c = self._exact_top_preassign(view, dist)
+                argmax_tried = (th.where(view.assignable, dist.get_actions(True), -1).unsqueeze(1) == tasks).any(-1)
             else:
                 c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             if rounds_out is not None:
@@ -530,7 +532,7 @@ class TAMPolicy(BasePolicy):
             env_action = th.where(action < M, action, env_action)
             if r + 1 == self.rounds:  # no round follows: skip the next view and its device sync
                 break
-            tried = candidates.any(-1)
+            tried = candidates.any(-1) if argmax_tried is None else candidates.any(-1) | argmax_tried
             view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
             if not bool(view.assignable.any()):
                 break
@@ -551,7 +553,7 @@ class TAMPolicy(BasePolicy):
     def _exact_top_preassign(self, view: ObsView, dist: MaskedCategorical) -> th.Tensor:
         """(B, N) the pre-assignment of ``decision_exact_top``: the exact most profitable cover of the pairs that join
         each free entity to one of its ``decision_exact_top`` most probable tasks under π (:func:`.exact_covers`);
-        entities outside the cover are no task's candidates and stay for the next round (implementation detail 22)."""
+        entities outside the cover are no task's candidates and stay free for the next round (implementation detail 22)."""
         M = view.task_mask.shape[1]
         # A stable sort breaks ties between equally probable tasks toward the lower slot, as the argmax does, so k = 1
         # keeps the argmax's own tasks (topk's order among ties is unspecified).
