@@ -127,8 +127,10 @@ class TAMPolicy(BasePolicy):
         join each free entity to one of its ``decision_exact_top`` most probable tasks under the pre-assign actor, and
         its teams are weighed as with ``select_decision_exact``; entities outside the cover stay free for the next
         round, and the round has tried the tasks it covers and those of the argmax's candidate sets (implementation
-        detail 22). 1 decides as ``select_decision_exact``; larger values approach the per-step MILP. Exclusive with
-        ``decision_samples``; sampled decisions (training) do not search; ignored without pre-assignment
+        detail 22). 1 decides as ``select_decision_exact``; larger values approach the per-step MILP. Each solve stops
+        at 1 s with the best cover found, which then depends on the machine's speed and load: with hundreds of allowed
+        pairs (RBF's 100 robots at k = 2) a decision need not repeat exactly. Exclusive with ``decision_samples``;
+        sampled decisions (training) do not search; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
