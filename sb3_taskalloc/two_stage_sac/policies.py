@@ -514,14 +514,13 @@ class TAMPolicy(BasePolicy):
                 )
                 c = found.candidates
             elif deterministic and not uniform and self.decision_exact_top:
-                c = self._exact_top_preassign(view, dist)
-                argmax_tried = (th.where(view.assignable, dist.get_actions(True), -1).unsqueeze(1) == tasks).any(-1)
+                c, argmax = self._exact_top_preassign(view, dist)
+                argmax_tried = (argmax.unsqueeze(1) == tasks).any(-1)
             else:
                 c = th.where(view.assignable, dist.get_actions(deterministic), -1)
             if rounds_out is not None:
                 rounds_out.append((view, c))
-            searched = self.select_decision_samples > 1 or self.select_decision_exact or self.decision_exact_top
-            if deterministic and not uniform and searched:
+            if deterministic and not uniform and (self.select_decision_samples > 1 or self._exact_teams):
                 teams = self._search_teams(view, c)
                 rank, kept = teams.rank, teams.profit > 0  # a task's profit is positive exactly where its team is kept
             else:
@@ -549,19 +548,26 @@ class TAMPolicy(BasePolicy):
         found = select_search(
             head, view, task_of, self.select_decision_samples, self.select_decision_temperature, self._stream(view)
         )
-        exact = self.select_decision_exact or self.decision_exact_top > 0
-        return cover_search(head, view, task_of, against=found) if exact else found
+        return cover_search(head, view, task_of, against=found) if self._exact_teams else found
 
-    def _exact_top_preassign(self, view: ObsView, dist: MaskedCategorical) -> th.Tensor:
-        """(B, N) the pre-assignment of ``decision_exact_top``: the exact most profitable cover of the pairs that join
-        each free entity to one of its ``decision_exact_top`` most probable tasks under π (:func:`.exact_covers`);
-        entities outside the cover are no task's candidates and stay free for the next round (implementation detail 22)."""
+    @property
+    def _exact_teams(self) -> bool:
+        """Whether deterministic decisions weigh each task's exact cover (``select_decision_exact``, and
+        ``decision_exact_top``, whose pre-assignment is such a cover)."""
+        return self.select_decision_exact or self.decision_exact_top > 0
+
+    def _exact_top_preassign(self, view: ObsView, dist: MaskedCategorical) -> tuple[th.Tensor, th.Tensor]:
+        """The pre-assignment of ``decision_exact_top``: (B, N) the exact most profitable cover of the pairs that join
+        each free entity to one of its ``decision_exact_top`` most probable tasks under π (:func:`.exact_covers`;
+        entities outside the cover are no task's candidates and stay free for the next round), and (B, N) each
+        assignable entity's argmax task (−1 otherwise), whose tasks the round counts as tried (implementation detail 22)."""
         M = view.task_mask.shape[1]
-        # A stable sort breaks ties between equally probable tasks toward the lower slot, as the argmax does, so k = 1
-        # keeps the argmax's own tasks (topk's order among ties is unspecified).
-        top = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices[..., : min(self.decision_exact_top, M)]
-        chosen = th.zeros_like(view.valid).scatter_(-1, top, True)
-        return exact_covers(view, chosen & view.valid & view.assignable.unsqueeze(-1))
+        # A stable sort breaks ties between equally probable tasks toward the lower slot, as the argmax does, so its
+        # first column is the argmax and k = 1 keeps the argmax's own tasks (topk's order among ties is unspecified).
+        order = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices
+        chosen = th.zeros_like(view.valid).scatter_(-1, order[..., : min(self.decision_exact_top, M)], True)
+        covers = exact_covers(view, chosen & view.valid & view.assignable.unsqueeze(-1))
+        return covers, th.where(view.assignable, order[..., 0], -1)
 
     def _stream(self, view: ObsView) -> th.Generator:
         """The random stream of the decision-time search, on the observations' device, seeded at 0 when first used."""
