@@ -658,3 +658,34 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
         with pytest.raises(SystemExit):  # refused before any training
             main(["learn", "--env", "Almighty", "--steps", "1", "--out", str(tmp_path / "cli"), *bad])
     assert not (tmp_path / "cli").exists()
+
+
+def test_learning_experiment_replicates_on_later_seeds(tmp_path):
+    """``first_seed`` trains seeds ``first_seed`` .. ``first_seed + seeds − 1`` on their own held-out episodes (never
+    those of seeds 0 .. first_seed − 1), names them in the report and its command, and bad values are refused."""
+    import json
+
+    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments.__main__ import main
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
+    run = learn.LearnRun("Almighty", 2, steps=3, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                         out=tmp_path, first_seed=3)  # fmt: skip
+    assert list(run.seed_range) == [3, 4]
+    text = run.run(progress=False).read_text()
+    assert "2 seeds (3–4) × 2 held-out episodes" in text and "--first-seed 3" in text
+    records = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
+    assert [r["seed"] for r in records] == [3, 4] and run.seed_path(3).with_suffix(".zip").exists()
+    assert not any(tmp_path.glob("Almighty/seed_0_*"))
+    assert [r["eval_seeds"] for r in records] == [learn.eval_seeds(3, 2), learn.eval_seeds(4, 2)]
+    earlier = [s for seed in range(3) for s in learn.eval_seeds(seed, 100)]
+    assert set(records[0]["eval_seeds"] + records[1]["eval_seeds"]).isdisjoint(earlier)
+    assert "--first-seed" not in learn.LearnRun("Almighty", 2).command()
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="first_seed"):
+            learn.LearnRun("Almighty", 2, first_seed=bad)
+    with pytest.raises(ValueError, match="seeds"):
+        learn.LearnRun("Almighty", 0)
+    with pytest.raises(SystemExit):
+        main(["learn", "--env", "Almighty", "--first-seed", "-1", "--out", str(tmp_path / "cli")])
+    assert not (tmp_path / "cli").exists()

@@ -46,6 +46,10 @@ def main(argv: list[str] | None = None) -> None:
     learn = sub.add_parser("learn", help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)")
     learn.add_argument("--env", required=True, choices=ENVS)
     learn.add_argument("--seeds", type=int, default=5)
+    learn.add_argument(
+        "--first-seed", type=int, default=0, metavar="S",
+        help="train seeds S .. S + seeds - 1 (a replicate on new seeds and new held-out episodes; default 0)",
+    )  # fmt: skip
     learn.add_argument("--steps", type=int, default=20_000, help="training env steps per seed (0: with --select-dagger only)")
     learn.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes per seed")
     learn.add_argument("--eval-every", type=int, default=2_000, help="env steps between the curve's evaluations")
@@ -130,6 +134,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
     if args.steps < (0 if args.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
         parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
+    if args.first_seed < 0:
+        parser.error(f"--first-seed must be >= 0, got {args.first_seed}")
     if args.validation_episodes < 0:
         parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
     if args.select_dagger < 0:
@@ -140,7 +146,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
     run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                    out=args.out, validation_episodes=args.validation_episodes,
-                   select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation)  # fmt: skip
+                   select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation,
+                   first_seed=args.first_seed)  # fmt: skip
     for flag, least in (("decision_samples", 1), ("select_decision_samples", 1), ("decision_exact_top", 0)):
         if getattr(args, flag) < least:
             parser.error(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")

@@ -38,7 +38,7 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_taskalloc.common.utils import atomic_write_text
+from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env
 
 #: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
@@ -185,7 +185,7 @@ class LearnRun:
     """One env's learning experiment.
 
     :param env: ``"RBF"``, ``"MT"``, ``"EPT"`` or ``"Almighty"``
-    :param seeds: training seeds 0 .. seeds − 1
+    :param seeds: number of training seeds, ``first_seed`` .. ``first_seed + seeds − 1``
     :param steps: training env steps per seed
     :param eval_episodes: held-out evaluation episodes per seed
     :param eval_every: env steps between the curve's evaluations
@@ -203,6 +203,8 @@ class LearnRun:
         DAgger"); the curve goes on through DAgger, and a better point on the validation episodes replaces the best
         checkpoint
     :param dagger_imitation: DAgger's loss, ``"sequence"`` or ``"set"`` (``imitation`` of ``distill_select``)
+    :param first_seed: the first training seed; a replicate of a run on seeds it has not seen starts past its last seed
+        (every seed's held-out, validation and DAgger episodes are derived from it, so they are new episodes too)
     """
 
     env: str
@@ -217,6 +219,17 @@ class LearnRun:
     validation_episodes: int = 0
     select_dagger: int = 0
     dagger_imitation: str = "sequence"
+    first_seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_counts({"seeds": self.seeds})
+        if not (isinstance(self.first_seed, int) and not isinstance(self.first_seed, bool) and self.first_seed >= 0):
+            raise ValueError(f"first_seed must be an int ≥ 0, got {self.first_seed!r}")
+
+    @property
+    def seed_range(self) -> range:
+        """The training seeds."""
+        return range(self.first_seed, self.first_seed + self.seeds)
 
     @property
     def env_id(self) -> str:
@@ -414,14 +427,14 @@ class LearnRun:
         from tqdm.auto import tqdm
 
         with ExitStack() as stack:
-            results: Iterable[dict[str, Any]] = map(self.run_seed, range(self.seeds))
+            results: Iterable[dict[str, Any]] = map(self.run_seed, self.seed_range)
             if jobs > 1:
                 import multiprocessing
                 from concurrent.futures import ProcessPoolExecutor
 
                 context = multiprocessing.get_context("spawn")  # fresh interpreters: no forked torch thread pools
                 pool = stack.enter_context(ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread))
-                results = pool.map(self.run_seed, range(self.seeds))
+                results = pool.map(self.run_seed, self.seed_range)
             records = list(tqdm(results, total=self.seeds, desc=f"{self.env} learning", disable=not progress))
         return self.write(records)
 
@@ -454,8 +467,9 @@ class LearnRun:
         critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
         critic_headers = [CRITIC_COLUMNS[c] for c in critic]
         lines = [
-            f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds × {self.eval_episodes} held-out "
-            "episodes",
+            f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds"
+            + (f" ({self.seed_range[0]}–{self.seed_range[-1]})" if self.first_seed else "")
+            + f" × {self.eval_episodes} held-out episodes",
             "",
             f"Command: `{self.command()}`. Curve: `{png.name}`.",
             "",
@@ -584,7 +598,7 @@ class LearnRun:
             name: value for name, value in values.items() if (name, value) in on or name in FIRST_SEARCHES
         }
         rows: list[dict[str, Any]] = []
-        for seed in range(self.seeds):
+        for seed in self.seed_range:
             path = self.seed_path(seed).with_suffix(".zip")
             if not path.exists():
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
@@ -651,6 +665,8 @@ class LearnRun:
         if self.select_dagger:
             planners += f" --select-dagger {self.select_dagger}"
             planners += f" --dagger-imitation {self.dagger_imitation}" if self.dagger_imitation != "sequence" else ""
+        if self.first_seed:
+            planners += f" --first-seed {self.first_seed}"
         return (
             f"python -m sb3_taskalloc.experiments learn --env {self.env} --seeds {self.seeds} --steps {self.steps} "
             f"--eval-episodes {self.eval_episodes} --eval-every {self.eval_every}{planners}{extra}"
