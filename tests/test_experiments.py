@@ -662,7 +662,8 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
 
 def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     """``first_seed`` trains seeds ``first_seed`` .. ``first_seed + seeds − 1`` on their own held-out episodes (never
-    those of seeds 0 .. first_seed − 1), names them in the report and its command, and bad values are refused."""
+    those of seeds 0 .. first_seed − 1), names them in the report and its command, and bad values are refused. The
+    report's critic means skip a seed that lacks a figure and say over how many seeds they are."""
     import json
 
     from sb3_taskalloc.experiments import learn
@@ -681,6 +682,16 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     earlier = [s for seed in range(3) for s in learn.eval_seeds(seed, 100)]
     assert set(records[0]["eval_seeds"] + records[1]["eval_seeds"]).isdisjoint(earlier)
     assert "--first-seed" not in learn.LearnRun("Almighty", 2).command()
+    # A seed whose sampled decisions never differed has no paired-critic figures: the means are over the other seeds.
+    figures = {"advantage_pairs": 4, "advantage_corr": 0.5, "advantage_ceiling": 0.9, "advantage_sign": 0.75}
+    none = {"advantage_pairs": 0, **dict.fromkeys(["advantage_corr", "advantage_ceiling", "advantage_sign"], float("nan"))}
+    text = run.write([{**records[0], **figures}, {**records[1], **none}]).read_text()
+    assert "corr(ΔQ, ΔḠ) 0.50 against a ceiling of 0.90" in text and "75 % of the pairs (means over the 1 of 2 seeds" in text
+    assert (
+        "| 4.0 (1 of 2 seeds)" not in text
+        and "| 2.0 | 0.50 (1 of 2 seeds) | 0.90 (1 of 2 seeds) | 0.75 (1 of 2 seeds) |" in text
+    )
+    assert "nan" not in text.split("| mean ± std |")[1].split("\n")[0]
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="first_seed"):
             learn.LearnRun("Almighty", 2, first_seed=bad)

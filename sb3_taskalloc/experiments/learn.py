@@ -82,6 +82,23 @@ def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHE
 PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
 
 
+def seed_mean(records: list[dict[str, Any]], name: str) -> tuple[float, int]:
+    """Mean of figure ``name`` over the seeds where it is defined, and their number: a seed whose sampled decisions
+    never differ has no corr(ΔQ, ΔḠ) (NaN), which must not make the mean NaN nor count as a value."""
+    values = np.array([r[name] for r in records], dtype=float)
+    defined = values[~np.isnan(values)]
+    return (float(defined.mean()) if defined.size else float("nan")), int(defined.size)
+
+
+def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -> str:
+    """:func:`seed_mean` formatted, with the number of seeds it is over when some seeds lack the figure ("—" when none
+    has it)."""
+    mean, defined = seed_mean(records, name)
+    if not defined:
+        return "—"
+    return f"{mean:.{digits}f}" + (f" ({defined} of {len(records)} seeds)" if defined < len(records) else "")
+
+
 def eval_seeds(seed: int, episodes: int) -> list[int]:
     """Reset seeds of the held-out evaluation episodes of training seed ``seed`` (disjoint from training seeds)."""
     return [10_000 + 100 * seed + k for k in range(episodes)]
@@ -509,7 +526,7 @@ class LearnRun:
             figures = " | ".join(f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic)
             lines.append(f"| {r['seed']} | {cells} | {figures} | {r['train_seconds']:.0f} |")
         summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
-        critic_means = " | ".join(f"{np.mean([r[c] for r in records]):.{1 if c == 'advantage_pairs' else 2}f}" for c in critic)
+        critic_means = " | ".join(_seed_mean_cell(records, c, 1 if c == "advantage_pairs" else 2) for c in critic)
         lines.append(f"| mean ± std | {summary} | {critic_means} | |")
         lines += ["", *self.targets(means, records)]
         return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
@@ -523,6 +540,7 @@ class LearnRun:
         scale = np.array([r["q_scale"] for r in records])
         timings = " / ".join(sorted({r.get("critic_reward", "completion") for r in records}))
         milp_target = " (target ≥ 0.99)" if self.env == "EPT" else " (goal ≥ 1)"
+        paired = {c: seed_mean(records, c) for c in CRITIC_ADVANTAGE} if has_branched(records, CRITIC_ADVANTAGE) else {}
         lines = [
             f"- trained / untrained (means): {ratio:.3f} (target ≥ 1.10)",
             f"- trained > untrained: {int((trained > init).sum())} of {n} seeds (target ≥ 4 of 5)",
@@ -544,11 +562,16 @@ class LearnRun:
                 [
                     f"- the critic between two sampled decisions of a state (what the actor follows; "
                     f"{sum(r['advantage_pairs'] for r in records)} pairs where they differ): corr(ΔQ, ΔḠ) "
-                    f"{np.mean([r['advantage_corr'] for r in records]):.2f} against a ceiling of "
-                    f"{np.mean([r['advantage_ceiling'] for r in records]):.2f} (the noise of the paired branches); ΔQ "
-                    f"has the sign of ΔḠ in {100 * np.mean([r['advantage_sign'] for r in records]):.0f} % of the pairs",
+                    f"{paired['advantage_corr'][0]:.2f} against a ceiling of {paired['advantage_ceiling'][0]:.2f} (the "
+                    f"noise of the paired branches); ΔQ has the sign of ΔḠ in {100 * paired['advantage_sign'][0]:.0f} % of "
+                    "the pairs"
+                    + (
+                        f" (means over the {paired['advantage_corr'][1]} of {n} seeds with such pairs)"
+                        if paired["advantage_corr"][1] < n
+                        else ""
+                    ),
                 ]
-                if has_branched(records, CRITIC_ADVANTAGE)
+                if paired
                 else []
             ),
             f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
