@@ -537,6 +537,14 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     saved.write_text(json.dumps({**rows[0], "trained": [-1.0, -1.0], "model_digest": "another model"}))
     again = json.loads(run.reevaluate(decision_samples=4).with_suffix(".json").read_text())["seeds"]
     assert again[0]["trained"] == rows[0]["trained"]  # a row of another model file is evaluated again
+    assert again[0]["rules"] == {"decision_samples": learn.SEARCH_RULES["decision_samples"]}
+    saved.write_text(json.dumps({k: v for k, v in again[0].items() if k != "rules"}))  # a row saved before the versions
+    with monkeypatch.context() as patched:
+        patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("a row of rule version 1 was evaluated again"))
+        run.reevaluate(decision_samples=4)
+        patched.setitem(learn.SEARCH_RULES, "decision_samples", 2)  # the search's rule changed: its rows are stale
+        with pytest.raises(pytest.fail.Exception, match="evaluated again"):
+            run.reevaluate(decision_samples=4)
     both = run.reevaluate(decision_samples=2, select_decision_samples=3)  # and a search of 3 teams per task
     assert both.name == "EPT_decision_samples_2_select_decision_samples_3.md"
     assert "--decision-samples 2 --select-decision-samples 3`" in both.read_text()

@@ -70,6 +70,10 @@ DECISION_SEARCHES: dict[str, tuple[int | bool, str]] = {
     "decision_exact_top": (0, "pre-assigned by the exact cover among each entity's top {} tasks at decision time"),
 }
 FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
+#: Version of each search's decision rule. A re-evaluation row is reused only for the same model file and the same
+#: versions of the searches it ran, so a change to what a search decides must increase its number here (rows saved
+#: before these numbers existed count as version 1).
+SEARCH_RULES: dict[str, int] = dict.fromkeys(DECISION_SEARCHES, 1)
 
 
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
@@ -605,7 +609,8 @@ class LearnRun:
         argmax), against Greedy (and the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>]``
         followed by each search that is on (``_decision_samples_<K>``, ``_select_decision_exact``, ...), ``.md`` and
         ``.json``. Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes,
-        under a digest of its model file, so an interrupted re-evaluation resumes at the seed it stopped in.
+        under a digest of its model file and the versions of the searches' rules (:data:`SEARCH_RULES`), so an
+        interrupted re-evaluation resumes at the seed it stopped in.
         :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
@@ -620,6 +625,7 @@ class LearnRun:
         searches: dict[str, Any] = {
             name: value for name, value in values.items() if (name, value) in on or name in FIRST_SEARCHES
         }
+        rules = {name: SEARCH_RULES[name] for name, _ in on}
         rows: list[dict[str, Any]] = []
         for seed in self.seed_range:
             path = self.seed_path(seed).with_suffix(".zip")
@@ -628,7 +634,7 @@ class LearnRun:
             model_digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
             done = self.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{self.key}.json")
             saved = json.loads(done.read_text()) if done.exists() else {}
-            if saved.get("model_digest") == model_digest:
+            if saved.get("model_digest") == model_digest and saved.get("rules", dict.fromkeys(rules, 1)) == rules:
                 rows.append(saved)
                 continue
             seeds = eval_seeds(seed, self.eval_episodes)
@@ -640,7 +646,7 @@ class LearnRun:
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
                    "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
             row.update({"Greedy": episode_returns(b.GreedyAllocator(), env_id, seeds)} if shift else self.baselines(seed))
-            row["model_digest"] = model_digest
+            row["model_digest"], row["rules"] = model_digest, rules
             atomic_write_text(done, json.dumps(row) + "\n")
             rows.append(row)
         settings = {"settings": self.describe(), "env": env_id, **searches, "seeds": rows}
