@@ -705,3 +705,33 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     with pytest.raises(SystemExit):
         main(["learn", "--env", "Almighty", "--first-seed", "-1", "--out", str(tmp_path / "cli")])
     assert not (tmp_path / "cli").exists()
+
+
+def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path):
+    """``device="cuda"`` trains on CUDA and evaluates on the CPU; its seed files have their own digest and its command and
+    title name the device, so a CPU run never reuses them. Where CUDA is missing, the CLI refuses ``--device cuda`` before
+    any training, and an unknown device is refused by name."""
+    import json
+
+    import torch as th
+
+    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments.__main__ import main
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
+    cpu = learn.LearnRun("Almighty", 1, steps=3, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(), out=tmp_path)
+    cuda = dataclasses.replace(cpu, device="cuda")
+    assert cuda.key != cpu.key and cuda.seed_path(0) != cpu.seed_path(0)
+    assert "--device cuda" in cuda.command() and "--device" not in cpu.command()
+    with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda', got 'tpu'"):
+        learn.LearnRun("Almighty", 1, device="tpu")
+    if not th.cuda.is_available():
+        with pytest.raises(SystemExit):
+            main(["learn", "--env", "Almighty", "--seeds", "1", "--device", "cuda", "--out", str(tmp_path / "cli")])
+        assert not (tmp_path / "cli").exists()
+        return
+    text = cuda.run(progress=False).read_text()
+    assert "(trained on CUDA)" in text and "--device cuda" in text
+    (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
+    assert record["device"] == "cuda" and len(record["trained"]) == 2
+    assert cuda.seed_path(0).with_suffix(".zip").exists() and not cpu.seed_path(0).exists()

@@ -50,6 +50,10 @@ def main(argv: list[str] | None = None) -> None:
         "--first-seed", type=int, default=0, metavar="S",
         help="train seeds S .. S + seeds - 1 (a replicate on new seeds and new held-out episodes; default 0)",
     )  # fmt: skip
+    learn.add_argument(
+        "--device", choices=("cpu", "cuda"), default="cpu",
+        help="where the seeds train (evaluated on the CPU either way; a CUDA run has its own seed files)",
+    )  # fmt: skip
     learn.add_argument("--steps", type=int, default=20_000, help="training env steps per seed (0: with --select-dagger only)")
     learn.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes per seed")
     learn.add_argument("--eval-every", type=int, default=2_000, help="env steps between the curve's evaluations")
@@ -136,6 +140,11 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
     if args.first_seed < 0:
         parser.error(f"--first-seed must be >= 0, got {args.first_seed}")
+    if args.device == "cuda":
+        import torch as th
+
+        if not th.cuda.is_available():
+            parser.error("--device cuda: torch.cuda.is_available() is False on this machine")
     if args.validation_episodes < 0:
         parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
     if args.select_dagger < 0:
@@ -147,7 +156,7 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                    out=args.out, validation_episodes=args.validation_episodes,
                    select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation,
-                   first_seed=args.first_seed)  # fmt: skip
+                   first_seed=args.first_seed, device=args.device)  # fmt: skip
     for flag, least in (("decision_samples", 1), ("select_decision_samples", 1), ("decision_exact_top", 0)):
         if getattr(args, flag) < least:
             parser.error(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")

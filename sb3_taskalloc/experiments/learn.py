@@ -26,6 +26,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import io
 import json
 import time
 import warnings
@@ -226,6 +227,9 @@ class LearnRun:
     :param dagger_imitation: DAgger's loss, ``"sequence"`` or ``"set"`` (``imitation`` of ``distill_select``)
     :param first_seed: the first training seed; a replicate of a run on seeds it has not seen starts past its last seed
         (every seed's held-out, validation and DAgger episodes are derived from it, so they are new episodes too)
+    :param device: where the training runs, ``"cpu"`` or ``"cuda"``. The trained model is evaluated and diagnosed on
+        the CPU either way (one observation at a time is faster there). CUDA's random streams differ from the CPU's, so a
+        CUDA run is a run of its own (its seed files have their own digest)
     """
 
     env: str
@@ -241,11 +245,14 @@ class LearnRun:
     select_dagger: int = 0
     dagger_imitation: str = "sequence"
     first_seed: int = 0
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         check_counts({"seeds": self.seeds})
         if not (isinstance(self.first_seed, int) and not isinstance(self.first_seed, bool) and self.first_seed >= 0):
             raise ValueError(f"first_seed must be an int ≥ 0, got {self.first_seed!r}")
+        if self.device not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
 
     @property
     def seed_range(self) -> range:
@@ -270,6 +277,8 @@ class LearnRun:
             settings += (("select_dagger", self.select_dagger),)
             if self.dagger_imitation != "sequence":  # appended only when set: the digests of earlier DAgger runs stay valid
                 settings += (("dagger_imitation", self.dagger_imitation),)
+        if self.device != "cpu":  # appended only when set: the digests of CPU runs stay valid
+            settings += (("device", self.device),)
         return config_key(env_settings(self.env_id), self.hyperparameters, settings)
 
     def seed_path(self, seed: int) -> Path:
@@ -309,12 +318,18 @@ class LearnRun:
         from sb3_taskalloc import TwoStageSAC
 
         env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
-        model = TwoStageSAC("TAMPolicy", env, seed=seed, device="cpu", **hyperparameters)
+        model = TwoStageSAC("TAMPolicy", env, seed=seed, device=self.device, **hyperparameters)
         record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
         curve = self._curve(seed)
         t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
+        if self.device != "cpu":  # the evaluations decide one observation at a time, which is faster on the CPU
+            buffer = io.BytesIO()
+            model.save(buffer)
+            buffer.seek(0)
+            model = TwoStageSAC.load(buffer, env=env, device="cpu")
+            record["device"] = self.device
         return model, record, curve
 
     def _evaluate_best(self, model: Any, curve: Curve, record: dict[str, Any], path: Path) -> None:
@@ -490,7 +505,8 @@ class LearnRun:
         lines = [
             f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds"
             + (f" ({self.seed_range[0]}–{self.seed_range[-1]})" if self.first_seed else "")
-            + f" × {self.eval_episodes} held-out episodes",
+            + f" × {self.eval_episodes} held-out episodes"
+            + (" (trained on CUDA)" if self.device == "cuda" else ""),
             "",
             f"Command: `{self.command()}`. Curve: `{png.name}`.",
             "",
@@ -683,6 +699,8 @@ class LearnRun:
             "validation_episodes": self.validation_episodes,
             "select_dagger": self.select_dagger,
             "dagger_imitation": self.dagger_imitation,
+            "first_seed": self.first_seed,
+            "device": self.device,
             "key": self.key,
         }
 
@@ -696,6 +714,8 @@ class LearnRun:
             planners += f" --dagger-imitation {self.dagger_imitation}" if self.dagger_imitation != "sequence" else ""
         if self.first_seed:
             planners += f" --first-seed {self.first_seed}"
+        if self.device != "cpu":
+            planners += f" --device {self.device}"
         return (
             f"python -m sb3_taskalloc.experiments learn --env {self.env} --seeds {self.seeds} --steps {self.steps} "
             f"--eval-episodes {self.eval_episodes} --eval-every {self.eval_every}{planners}{extra}"
