@@ -51,13 +51,15 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
             assert 0 < row["amix_ms_per_gradient_step"] < row["gradient_step_ms"]
             assert row["env_steps_per_s_bound"] == pytest.approx(1e3 / (row["decision_ms"] + row["amix_ms_per_gradient_step"]))
     if which == "learn":  # --quick: 200 env steps, evaluated after 100 and 200 unless the target came first
-        (row,) = rows
-        assert row["target_return"] == pytest.approx(bench.LEARN_TARGET * row["untrained"])
-        steps = [point[0] for point in row["curve"]]
-        n = row["n_envs"]  # the zoo config's: one vectorised step collects n env steps
-        assert n == 8 and steps == [-(-100 // n) * n, 200][: len(steps)] and row["env_steps"] == steps[-1]
-        assert row["reached"] == (row["last_return"] >= row["target_return"]) == (row["seconds_to_target"] is not None)
-        assert row["curve"][-1][1] == row["training_s"] > 0
+        # one row per device: the CPU, and CUDA where torch sees a GPU (--device auto)
+        assert [row["device"] for row in rows] == ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+        for row in rows:
+            assert row["target_return"] == pytest.approx(bench.LEARN_TARGET * row["untrained"])
+            steps = [point[0] for point in row["curve"]]
+            n = row["n_envs"]  # the zoo config's: one vectorised step collects n env steps
+            assert n == 8 and steps == [-(-100 // n) * n, 200][: len(steps)] and row["env_steps"] == steps[-1]
+            assert row["reached"] == (row["last_return"] >= row["target_return"]) == (row["seconds_to_target"] is not None)
+            assert row["curve"][-1][1] == row["training_s"] > 0
     assert f"## {which}" in capsys.readouterr().out  # the printed table
 
 

@@ -39,7 +39,8 @@ def read_table(path: Path) -> list[list[str]]:
 @pytest.fixture(scope="module")
 def smoke_tables(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("results")
-    with mp.get_context("fork").Pool(2) as pool:
+    # spawn: a forked child cannot use CUDA once this process has (pytest-xdist runs other tests in this process first)
+    with mp.get_context("spawn").Pool(2) as pool:
         pool.map(run_smoke, [(env, str(out)) for env in ENVS], chunksize=1)
     return out
 

@@ -53,7 +53,8 @@ def test_almighty_preassignment_reaches_optimum_and_sequence_gets_stuck():
     sequence = {"preassign": False, "task_order": "sequential"}
     jobs = [(seed, {}, BUDGET["total_timesteps"]) for seed in SEEDS]
     jobs += [(seed, sequence, SEQUENCE_STEPS) for seed in SEQUENCE_SEEDS]
-    with mp.get_context("fork").Pool(2) as pool:
+    # spawn: a forked child cannot use CUDA once this process has (pytest-xdist runs other tests in this process first)
+    with mp.get_context("spawn").Pool(2) as pool:
         flat = pool.map(train_and_evaluate, jobs, chunksize=1)
     returns = {"pre-assign": flat[: len(SEEDS)], "sequence": flat[len(SEEDS) :]}
     print(f"\nAlmighty: pre-assign after {BUDGET['total_timesteps']} steps, sequence after {SEQUENCE_STEPS}: {returns}")
