@@ -328,7 +328,7 @@ class LearnRun:
             buffer = io.BytesIO()
             model.save(buffer)
             buffer.seek(0)
-            model = TwoStageSAC.load(buffer, env=env, device="cpu")
+            model = TwoStageSAC.load(buffer, env=model.get_env(), device="cpu")
             record["device"] = self.device
         return model, record, curve
 
