@@ -194,7 +194,8 @@ def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
         "from concurrent.futures import ProcessPoolExecutor\n"
         "from sb3_taskalloc.experiments.learn import _one_thread\n"
         "if __name__ == '__main__':\n"
-        "    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_one_thread)\n"
+        "    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_one_thread,\n"
+        "                               initargs=(os.getpid(),))\n"
         "    print(pool.submit(os.getpid).result(), flush=True)\n"
         "    pool.submit(time.sleep, 600)\n"
         "    time.sleep(600)\n"
@@ -217,6 +218,17 @@ def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
     while alive(worker) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not alive(worker), f"worker {worker} still runs after its parent was killed"
+    # A worker whose set-up runs only after the pool's process is gone (killed while the worker still imported torch)
+    # is no longer that process's child: it exits at once rather than watching its new parent.
+    late = subprocess.Popen(
+        [sys.executable, "-c", "import os, time\nfrom sb3_taskalloc.experiments.learn import _one_thread\n"
+         f"_one_thread({os.getpid() + 10**6})\ntime.sleep(600)\n"], cwd=Path.cwd(), stderr=subprocess.PIPE, text=True
+    )  # fmt: skip
+    try:
+        _, errors = late.communicate(timeout=60)
+        assert late.returncode == 1 and not errors, errors  # the watch's exit, not an error
+    finally:
+        late.kill()
 
 
 def test_table_rejects_bad_arguments():

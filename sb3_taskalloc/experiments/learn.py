@@ -28,6 +28,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import os
 import time
 import warnings
 from collections.abc import Callable, Iterable
@@ -140,9 +141,14 @@ def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable
     return returns
 
 
-def _one_thread() -> None:
+def _one_thread(parent: int | None = None) -> None:
     """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered, and a
-    watch that ends the worker when the process that started it is gone (:func:`_exit_with_parent`)."""
+    watch that ends the worker when the process that started it is gone (:func:`_exit_with_parent`).
+
+    :param parent: the pid of the process that started the pool (``os.getpid()`` there). A worker reads its own parent
+        only after its interpreter has started and imported torch, seconds later; a parent killed in between would
+        leave it re-parented already, watching the wrong process. ``None``: this process's parent now
+    """
     import os
     import threading
 
@@ -151,7 +157,7 @@ def _one_thread() -> None:
     import envs  # noqa: F401
 
     th.set_num_threads(1)
-    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+    threading.Thread(target=_exit_with_parent, args=(os.getppid() if parent is None else parent,), daemon=True).start()
 
 
 def _exit_with_parent(parent: int, poll: float = 1.0) -> None:
@@ -469,7 +475,9 @@ class LearnRun:
                 from concurrent.futures import ProcessPoolExecutor
 
                 context = multiprocessing.get_context("spawn")  # fresh interpreters: no forked torch thread pools
-                pool = stack.enter_context(ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread))
+                pool = stack.enter_context(
+                    ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread, initargs=(os.getpid(),))
+                )
                 results = pool.map(self.run_seed, self.seed_range)
             records = list(tqdm(results, total=self.seeds, desc=f"{self.env} learning", disable=not progress))
         return self.write(records)
