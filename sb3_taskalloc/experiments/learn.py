@@ -149,7 +149,6 @@ def _one_thread(parent: int | None = None) -> None:
         only after its interpreter has started and imported torch, seconds later; a parent killed in between would
         leave it re-parented already, watching the wrong process. ``None``: this process's parent now
     """
-    import os
     import threading
 
     import torch as th
@@ -166,8 +165,6 @@ def _exit_with_parent(parent: int, poll: float = 1.0) -> None:
     writing seeds into the results folder while a new run of the same folder starts. Seed records are written
     atomically, so the seed in progress loses only its unsaved work, as on Ctrl-C; a new run resumes from the finished
     seeds."""
-    import os
-
     while os.getppid() == parent:
         time.sleep(poll)
     os._exit(1)
