@@ -141,13 +141,13 @@ def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable
     return returns
 
 
-def _one_thread(parent: int | None = None) -> None:
+def _one_thread(parent: int) -> None:
     """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered, and a
     watch that ends the worker when the process that started it is gone (:func:`_exit_with_parent`).
 
     :param parent: the pid of the process that started the pool (``os.getpid()`` there). A worker reads its own parent
         only after its interpreter has started and imported torch, seconds later; a parent killed in between would
-        leave it re-parented already, watching the wrong process. ``None``: this process's parent now
+        leave it re-parented already, watching the wrong process
     """
     import threading
 
@@ -156,7 +156,7 @@ def _one_thread(parent: int | None = None) -> None:
     import envs  # noqa: F401
 
     th.set_num_threads(1)
-    threading.Thread(target=_exit_with_parent, args=(os.getppid() if parent is None else parent,), daemon=True).start()
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
 def _exit_with_parent(parent: int, poll: float = 1.0) -> None:
