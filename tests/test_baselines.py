@@ -82,6 +82,26 @@ def test_milp_is_optimal_on_small_instances(seed):
     assert value == pytest.approx(brute_force(obs), abs=1e-4)
 
 
+def test_milp_node_limit_stops_the_search_by_work():
+    """A node limit stops branch and bound where a time limit would stop it at a machine-dependent point: the limited
+    solve explores exactly its nodes, returns a feasible cover no better than the optimum, and repeats exactly."""
+    from sb3_taskalloc.baselines.milp import max_profit_cover
+
+    rng = np.random.default_rng(20)  # an instance whose optimum needs branching (9 nodes), solved in well under a second
+    supply, demand = rng.integers(0, 4, (24, 3)).astype(float), rng.integers(2, 8, (6, 3)).astype(float)
+    reward, cost = rng.uniform(5, 15, 6), rng.uniform(0.2, 2.0, (24, 6))
+    _, _, best = max_profit_cover(supply, demand, reward, cost, time_limit=60.0)
+    assert best.status == 0 and best.mip_node_count > 1
+    x, y, res = max_profit_cover(supply, demand, reward, cost, time_limit=60.0, node_limit=1)
+    assert res.status != 0 and res.mip_node_count == 1  # stopped by the node limit before proving optimality
+    assert res.fun >= best.fun - 1e-6  # minimised: a limited solve is never better than the optimum
+    assert (x.sum(1) <= 1).all() and (x.any(0) <= y).all()  # one task per entity, teams only on covered tasks
+    covered = (np.minimum(supply[:, None, :], demand[None]) * x[..., None]).sum(0) >= demand - 1e-9
+    assert covered.all(-1)[y].all()
+    x2, y2, _ = max_profit_cover(supply, demand, reward, cost, time_limit=60.0, node_limit=1)
+    assert (x2 == x).all() and (y2 == y).all()
+
+
 def test_highs_stdout_is_silenced_only_during_the_solve(capfd):
     # HiGHS writes its stray MIP message to descriptor 1 from C, as os.write does here.
     from sb3_taskalloc.baselines.milp import _highs_stdout_silenced

@@ -369,6 +369,29 @@ def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_ta
         make_policy(env, decision_exact_top=2, decision_samples=8)
 
 
+def test_exact_searches_stop_each_solve_at_the_node_limit(monkeypatch):
+    """The decision-time exact searches bound each HiGHS solve by its node limit (work, the same on any machine), with
+    the time limit only as a safety net; a caller's own limits reach the solver."""
+    from sb3_taskalloc.baselines import milp
+    from sb3_taskalloc.two_stage_sac import select_stage
+
+    solve, limits = milp.max_profit_cover, []
+    monkeypatch.setattr(milp, "max_profit_cover", lambda *a, **k: limits.append(k) or solve(*a, **k))
+    env = gym.make("TaskAlloc/RBF-v0")
+    policy = make_policy(env, rounds=2, decision_exact_top=2)
+    view = episode_view(env, make_policy(env))
+    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 16))
+    limits.clear()
+    with th.no_grad():
+        policy.decide(view, deterministic=True)
+    assert len(limits) >= view.pair_cost.shape[0]  # one solve per state and round at least
+    assert all(k["node_limit"] == select_stage.EXACT_NODE_LIMIT for k in limits)
+    assert all(k["time_limit"] == select_stage.EXACT_TIME_LIMIT for k in limits)
+    limits.clear()
+    select_stage.exact_covers(view, view.valid & view.assignable.unsqueeze(-1), node_limit=3, time_limit=5.0)
+    assert limits and all(k["node_limit"] == 3 and k["time_limit"] == 5.0 for k in limits)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "agnostic"),
     [({}, True), ({"preassign": False}, True), ({"encoder": "mlp"}, False), ({"mixer": "global"}, False)],

@@ -27,8 +27,8 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
         {"mixer": "global"},
         {"rounds": 2, "decision_samples": 8, "select_decision_samples": 4},
         {"select_decision_exact": True},
-        # k = 1: per-task covers, solved well within HiGHS's time limit (a solve that reaches it depends on the speed of
-        # the machine, so larger covers on a loaded machine need not repeat the same decision)
+        # k = 1: per-task covers, quick to solve (k = 2 over RBF's 100 robots decides the same after a reload too, as
+        # every solve stops at a node limit, but takes about 15 s here)
         {"rounds": 2, "decision_exact_top": 1},
         {"select_pair_hidden": 8},
     ],

@@ -64,6 +64,7 @@ def max_profit_cover(
     allowed: np.ndarray | None = None,
     time_limit: float = 10.0,
     mip_rel_gap: float = 1e-6,
+    node_limit: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, Any]:
     """The most profitable set of covered tasks and their teams, among the ``allowed`` entity-task pairs:
 
@@ -76,6 +77,11 @@ def max_profit_cover(
     :param reward: (m,) rewards of the tasks
     :param cost: (n, m) pair costs
     :param allowed: (n, m) bool pairs that may be assigned (None: all)
+    :param time_limit: HiGHS time limit (seconds); the best allocation found is used when it is reached
+    :param mip_rel_gap: relative optimality gap at which HiGHS stops
+    :param node_limit: HiGHS branch-and-bound node limit (None: none); the best allocation found is used when it is
+        reached. Unlike the time limit it bounds the search by work, so the result does not depend on the machine's
+        speed or load (HiGHS solves a MIP on one thread and is deterministic given its options)
     :return: x (n, m) bool teams of the covered tasks, y (m,) bool covered tasks, and scipy's result
     """
     n, m, K = len(supply), len(demand), supply.shape[1]
@@ -106,7 +112,7 @@ def max_profit_cover(
             constraints=constraints,
             integrality=np.ones(P + m),
             bounds=Bounds(0, 1),
-            options={"time_limit": time_limit, "mip_rel_gap": mip_rel_gap},
+            options={"time_limit": time_limit, "mip_rel_gap": mip_rel_gap, "node_limit": node_limit},
         )
     x = np.zeros((n, m), bool)
     y = np.zeros(m, bool)

@@ -74,8 +74,9 @@ DECISION_SEARCHES: dict[str, tuple[int | bool, str]] = {
 FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
 #: Version of each search's decision rule. A re-evaluation row is reused only for the same model file and the same
 #: versions of the searches it ran, so a change to what a search decides must increase its number here (rows saved
-#: before these numbers existed count as version 1).
-SEARCH_RULES: dict[str, int] = dict.fromkeys(DECISION_SEARCHES, 1)
+#: before these numbers existed count as version 1). Version 2 of the exact searches stops each HiGHS solve at a node
+#: limit instead of at 1 s (:data:`~sb3_taskalloc.two_stage_sac.select_stage.EXACT_NODE_LIMIT`).
+SEARCH_RULES: dict[str, int] = {**dict.fromkeys(DECISION_SEARCHES, 1), "select_decision_exact": 2, "decision_exact_top": 2}
 
 
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:

@@ -128,8 +128,9 @@ class TAMPolicy(BasePolicy):
         its teams are weighed as with ``select_decision_exact``; entities outside the cover stay free for the next
         round, and the round has tried the tasks it covers and those of the argmax's candidate sets (implementation
         detail 22). 1 decides as ``select_decision_exact``; larger values approach the per-step MILP. Each solve stops
-        at 1 s with the best cover found, which then depends on the machine's speed and load: with hundreds of allowed
-        pairs (RBF's 100 robots at k = 2) a decision need not repeat exactly. Exclusive with ``decision_samples``;
+        at a node limit with the best cover found (:data:`.select_stage.EXACT_NODE_LIMIT`), so a decision is the same
+        on any machine (unless a solve reaches the safety time limit, :data:`.select_stage.EXACT_TIME_LIMIT`).
+        Exclusive with ``decision_samples``;
         sampled decisions (training) do not search; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):

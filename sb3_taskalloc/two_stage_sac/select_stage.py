@@ -317,13 +317,25 @@ def select_search(
     return SelectSearchResult(rank, th.gather(profit, 1, best.unsqueeze(1)).squeeze(1), p0)
 
 
-def exact_covers(view: ObsView, allowed: th.Tensor, time_limit: float = 1.0) -> th.Tensor:
+# The exact searches stop by work, not by the clock, so that a decision or a label does not depend on the machine's speed
+# or load: a node limit under which HiGHS proves nearly every step cover optimal (README, "A deterministic stop for the
+# exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
+EXACT_NODE_LIMIT = 1000
+EXACT_TIME_LIMIT = 30.0
+
+
+def exact_covers(
+    view: ObsView, allowed: th.Tensor, node_limit: int = EXACT_NODE_LIMIT, time_limit: float = EXACT_TIME_LIMIT
+) -> th.Tensor:
     """(B, N) the task each entity serves in the exact most profitable cover of the ``allowed`` pairs (−1: none):
     :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone, one
     HiGHS solve per batch row on the CPU.
 
     :param allowed: (B, N, M) bool pairs that may be assigned
-    :param time_limit: HiGHS time limit per batch row (seconds); the best cover found is used when it is reached
+    :param node_limit: HiGHS node limit per batch row; the best cover found is used when it is reached (a deterministic
+        stop: the cover is the same on any machine)
+    :param time_limit: HiGHS time limit per batch row (seconds), a safety net: where it binds, the cover depends on the
+        machine's speed and load
     """
     import numpy as np
 
@@ -343,7 +355,8 @@ def exact_covers(view: ObsView, allowed: th.Tensor, time_limit: float = 1.0) -> 
             reward[b, tasks],
             cost[b][np.ix_(ents, tasks)],
             pairs[b][np.ix_(ents, tasks)],
-            time_limit,
+            time_limit=time_limit,
+            node_limit=node_limit,
         )
         e, t = np.nonzero(x)
         members[b, ents[e]] = tasks[t]
@@ -351,7 +364,12 @@ def exact_covers(view: ObsView, allowed: th.Tensor, time_limit: float = 1.0) -> 
 
 
 def cover_search(
-    head: PointerHead, view: ObsView, task_of: th.Tensor, time_limit: float = 1.0, against: SelectSearchResult | None = None
+    head: PointerHead,
+    view: ObsView,
+    task_of: th.Tensor,
+    node_limit: int = EXACT_NODE_LIMIT,
+    time_limit: float = EXACT_TIME_LIMIT,
+    against: SelectSearchResult | None = None,
 ) -> SelectSearchResult:
     """Per task, the better of the teams ``against`` (default: the deterministic decode) and the exact most profitable
     cover of its candidates (:func:`exact_covers` on the candidate pairs alone), by the task's profit
@@ -361,7 +379,8 @@ def cover_search(
 
     :param head: the pointer actor
     :param task_of: (B, N) task each entity is a candidate of (−1: none)
-    :param time_limit: HiGHS time limit per batch row (seconds); the best cover found is used when it is reached
+    :param node_limit: HiGHS node limit per batch row (:func:`exact_covers`)
+    :param time_limit: HiGHS time limit per batch row (seconds), a safety net (:func:`exact_covers`)
     :param against: an earlier search's teams on the same candidates (:func:`select_search`), so the deterministic
         decode is not decoded twice
     """
@@ -371,7 +390,7 @@ def cover_search(
         against = SelectSearchResult(base.rank, p0, p0)
     M = view.task_mask.shape[1]
     allowed = task_of.unsqueeze(-1) == th.arange(M, device=task_of.device)
-    cover = decode_round(head, view, exact_covers(view, allowed, time_limit), deterministic=True)
+    cover = decode_round(head, view, exact_covers(view, allowed, node_limit, time_limit), deterministic=True)
     p1 = task_profit(cover)
     better = p1 > against.profit
     return SelectSearchResult(
