@@ -720,7 +720,7 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     assert not (tmp_path / "cli").exists()
 
 
-def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path):
+def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path, capsys):
     """``device="cuda"`` trains on CUDA and evaluates on the CPU; its seed files have their own digest and its command and
     title name the device, so a CPU run never reuses them. Where CUDA is missing, the CLI refuses ``--device cuda`` before
     any training, and an unknown device is refused by name."""
@@ -741,6 +741,7 @@ def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path):
     if not th.cuda.is_available():
         with pytest.raises(SystemExit):
             main(["learn", "--env", "Almighty", "--seeds", "1", "--device", "cuda", "--out", str(tmp_path / "cli")])
+        assert "--device cuda: no CUDA device is available" in capsys.readouterr().err  # the same words as bench's
         assert not (tmp_path / "cli").exists()
         return
     text = cuda.run(progress=False).read_text()

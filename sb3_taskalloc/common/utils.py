@@ -26,6 +26,14 @@ def check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:
             raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
 
 
+def cuda_unavailable(device: str) -> str | None:
+    """Why the command-line option ``--device`` cannot be ``device`` on this machine: a message when it names CUDA and
+    torch sees no CUDA device, else None (the commands refuse it before any work, each in its own way)."""
+    if device == "cuda" and not th.cuda.is_available():
+        return f"--device cuda: no CUDA device is available to torch {th.__version__}"
+    return None
+
+
 @th.no_grad()
 def foreach_polyak_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
     """SB3's :func:`~stable_baselines3.common.utils.polyak_update` (θ' ← (1 − τ)·θ' + τ·θ, the same arithmetic) with

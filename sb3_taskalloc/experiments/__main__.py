@@ -140,11 +140,10 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
     if args.first_seed < 0:
         parser.error(f"--first-seed must be >= 0, got {args.first_seed}")
-    if args.device == "cuda":
-        import torch as th
+    from sb3_taskalloc.common.utils import cuda_unavailable
 
-        if not th.cuda.is_available():
-            parser.error("--device cuda: torch.cuda.is_available() is False on this machine")
+    if why := cuda_unavailable(args.device):
+        parser.error(why)
     if args.validation_episodes < 0:
         parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
     if args.select_dagger < 0:

@@ -49,10 +49,12 @@ def _devices(args: argparse.Namespace) -> list[str]:
     """The torch devices that ``--device`` names: ``auto`` is the CPU, plus CUDA when a GPU is available."""
     import torch as th
 
+    from sb3_taskalloc.common.utils import cuda_unavailable
+
     if args.device == "auto":
         return ["cpu"] + (["cuda"] if th.cuda.is_available() else [])
-    if args.device == "cuda" and not th.cuda.is_available():
-        raise SystemExit(f"--device cuda: no CUDA device is available to torch {th.__version__}")
+    if why := cuda_unavailable(args.device):
+        raise SystemExit(why)
     return [args.device]
 
 
