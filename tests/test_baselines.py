@@ -100,6 +100,19 @@ def test_milp_node_limit_stops_the_search_by_work():
     assert covered.all(-1)[y].all()
     x2, y2, _ = max_profit_cover(supply, demand, reward, cost, time_limit=60.0, node_limit=1)
     assert (x2 == x).all() and (y2 == y).all()
+    # The per-step MILP allocator takes the same stop: on the same instance as an observation it stops at one node.
+    obs = {
+        "entity_supply": supply.astype(np.float32),
+        "entity_mask": np.ones(24, np.int8),
+        "task_demand": demand.astype(np.float32),
+        "task_reward": reward.astype(np.float32),
+        "task_mask": np.ones(6, np.int8),
+        "pair_cost": cost.astype(np.float32),
+    }
+    for node_limit, stopped in ((1, True), (None, False)):
+        milp = MILPAllocator(time_limit=60.0, node_limit=node_limit)
+        milp.predict(obs)
+        assert milp.last is not None and (milp.last.status != 0) is stopped
 
 
 def test_highs_stdout_is_silenced_only_during_the_solve(capfd):
@@ -234,7 +247,17 @@ def test_planner_errors():
         agent.predict(obs)
 
 
-@pytest.mark.parametrize("kwargs", [{"time_limit": float("nan")}, {"time_limit": 0}, {"mip_rel_gap": -0.1}])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"time_limit": float("nan")},
+        {"time_limit": 0},
+        {"mip_rel_gap": -0.1},
+        {"node_limit": 0},
+        {"node_limit": 2.5},
+        {"node_limit": True},
+    ],
+)
 def test_milp_settings_are_checked(kwargs):
-    with pytest.raises(ValueError, match=r"time_limit|mip_rel_gap"):
+    with pytest.raises(ValueError, match=r"time_limit|mip_rel_gap|node_limit"):
         MILPAllocator(**kwargs)

@@ -127,17 +127,23 @@ class MILPAllocator(Allocator):
     """The exact allocation of the current step among free entities and open tasks (:func:`max_profit_cover` over
     every pair). It is the per-step upper reference: it ignores travel time, decay and future tasks.
 
-    :param time_limit: HiGHS time limit per solve (seconds); the best allocation found is used when it is reached
+    :param time_limit: HiGHS time limit per solve (seconds); the best allocation found is used when it is reached, so
+        where it binds the allocation depends on the machine's speed and load
     :param mip_rel_gap: relative optimality gap at which HiGHS stops
+    :param node_limit: HiGHS node limit per solve (None: none); the best allocation found is used when it is reached.
+        A stop by work: with ``time_limit=float("inf")`` the allocations are the same on any machine
     """
 
-    def __init__(self, time_limit: float = 10.0, mip_rel_gap: float = 1e-6) -> None:
+    def __init__(self, time_limit: float = 10.0, mip_rel_gap: float = 1e-6, node_limit: int | None = None) -> None:
         if not (isinstance(time_limit, int | float) and time_limit > 0):  # NaN fails the comparison too
             raise ValueError(f"time_limit must be a number of seconds > 0 (inf: no limit), got {time_limit!r}")
         if not (isinstance(mip_rel_gap, int | float) and 0 <= mip_rel_gap < 1):
             raise ValueError(f"mip_rel_gap must lie in [0, 1), got {mip_rel_gap!r}")
+        if node_limit is not None and (isinstance(node_limit, bool) or not (isinstance(node_limit, int) and node_limit >= 1)):
+            raise ValueError(f"node_limit must be a positive integer or None, got {node_limit!r}")
         self.time_limit = time_limit
         self.mip_rel_gap = mip_rel_gap
+        self.node_limit = node_limit
         self.last: MILPSolution | None = None
 
     def allocate(self, obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -155,7 +161,9 @@ class MILPAllocator(Allocator):
         reward = obs["task_reward"][open_].astype(np.float64)
         cost = obs["pair_cost"][np.ix_(free, open_)].astype(np.float64)  # (n, m)
         t0 = time.perf_counter()
-        x, y, res = max_profit_cover(supply, demand, reward, cost, time_limit=self.time_limit, mip_rel_gap=self.mip_rel_gap)
+        x, y, res = max_profit_cover(
+            supply, demand, reward, cost, time_limit=self.time_limit, mip_rel_gap=self.mip_rel_gap, node_limit=self.node_limit
+        )
         seconds = time.perf_counter() - t0
         objective = 0.0
         if res.x is not None:
