@@ -81,7 +81,7 @@ def max_profit_cover(
     :param mip_rel_gap: relative optimality gap at which HiGHS stops
     :param node_limit: HiGHS branch-and-bound node limit (None: none); the best allocation found is used when it is
         reached. Unlike the time limit it bounds the search by work, so the result does not depend on the machine's
-        speed or load (HiGHS solves a MIP on one thread and is deterministic given its options)
+        speed or load (HiGHS's branch and bound is deterministic given its options)
     :return: x (n, m) bool teams of the covered tasks, y (m,) bool covered tasks, and scipy's result
     """
     n, m, K = len(supply), len(demand), supply.shape[1]

@@ -130,8 +130,7 @@ class TAMPolicy(BasePolicy):
         detail 22). 1 decides as ``select_decision_exact``; larger values approach the per-step MILP. Each solve stops
         at a node limit with the best cover found (:data:`.select_stage.EXACT_NODE_LIMIT`), so a decision is the same
         on any machine (unless a solve reaches the safety time limit, :data:`.select_stage.EXACT_TIME_LIMIT`).
-        Exclusive with ``decision_samples``;
-        sampled decisions (training) do not search; ignored without pre-assignment
+        Exclusive with ``decision_samples``; sampled decisions (training) do not search; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
