@@ -381,7 +381,6 @@ def test_exact_searches_stop_each_solve_at_the_node_limit(monkeypatch):
     policy = make_policy(env, rounds=2, decision_exact_top=2)
     view = episode_view(env, make_policy(env))
     view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 16))
-    limits.clear()
     with th.no_grad():
         policy.decide(view, deterministic=True)
     assert len(limits) >= view.pair_cost.shape[0]  # one solve per state and round at least
