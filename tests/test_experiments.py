@@ -711,7 +711,7 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     assert "| 2.0 | 0.50 (1 of 2 seeds) | 0.90 (1 of 2 seeds) | 0.75 (1 of 2 seeds) |" in text  # pairs: 4 and 0
     assert "nan" not in text.split("| mean ± std |")[1].split("\n")[0]
     for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="first_seed"):
+        with pytest.raises(ValueError, match="first_seed must be an integer ≥ 0"):
             learn.LearnRun("Almighty", 2, first_seed=bad)
     with pytest.raises(ValueError, match="seeds"):
         learn.LearnRun("Almighty", 0)

@@ -166,6 +166,7 @@ def test_entry_points_answer_help(module):
     ("kwargs", "match"),
     [
         ({"batch_size": 0}, "batch_size must be a positive integer"),
+        ({"batch_size": True}, "batch_size must be a positive integer, got True"),  # a bool is an int to Python
         ({"target_update_interval": 0}, "target_update_interval must be a positive integer"),
         ({"select_batch_size": -1}, "select_batch_size"),
         ({"ent_coef": "autox"}, "ent_coef must be 'auto'"),
@@ -175,6 +176,7 @@ def test_entry_points_answer_help(module):
         ({"policy_kwargs": {"hidden_dim": 0}}, "hidden_dim must be a positive integer"),
         ({"policy_kwargs": {"hidden_dim": -4}}, "hidden_dim must be a positive integer"),
         ({"policy_kwargs": {"n_critics": 0}}, "n_critics must be a positive integer"),
+        ({"policy_kwargs": {"select_pair_hidden": False}}, "select_pair_hidden must be an integer ≥ 0, got False"),
     ],
 )
 def test_bad_hyperparameters_are_named(kwargs, match):

@@ -14,6 +14,7 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from scipy.sparse import coo_matrix, hstack
 
 from sb3_taskalloc.baselines.base import Allocator
+from sb3_taskalloc.common.utils import check_counts
 
 
 @contextmanager
@@ -139,8 +140,8 @@ class MILPAllocator(Allocator):
             raise ValueError(f"time_limit must be a number of seconds > 0 (inf: no limit), got {time_limit!r}")
         if not (isinstance(mip_rel_gap, int | float) and 0 <= mip_rel_gap < 1):
             raise ValueError(f"mip_rel_gap must lie in [0, 1), got {mip_rel_gap!r}")
-        if node_limit is not None and (isinstance(node_limit, bool) or not (isinstance(node_limit, int) and node_limit >= 1)):
-            raise ValueError(f"node_limit must be a positive integer or None, got {node_limit!r}")
+        if node_limit is not None:
+            check_counts({"node_limit": node_limit})
         self.time_limit = time_limit
         self.mip_rel_gap = mip_rel_gap
         self.node_limit = node_limit

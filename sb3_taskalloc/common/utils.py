@@ -12,11 +12,17 @@ from typing import Any
 import torch as th
 
 
-def check_counts(counts: dict[str, Any]) -> None:
-    """A clear error for the first of ``counts`` (name -> value) that is not a positive integer."""
+def check_counts(counts: dict[str, Any], minimum: int = 1) -> None:
+    """A clear error for the first of ``counts`` (name -> value) that is not an integer ≥ ``minimum``. A bool is refused
+    though Python makes it an ``int``: ``batch_size=True`` is a mistake, not a batch of one.
+
+    :param counts: the values to check, by the name the error gives
+    :param minimum: the smallest value allowed (1: a positive integer)
+    """
+    what = "a positive integer" if minimum == 1 else f"an integer ≥ {minimum}"
     for name, count in counts.items():
-        if not (isinstance(count, int) and count >= 1):
-            raise ValueError(f"{name} must be a positive integer, got {count!r}")
+        if isinstance(count, bool) or not (isinstance(count, int) and count >= minimum):
+            raise ValueError(f"{name} must be {what}, got {count!r}")
 
 
 def check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:

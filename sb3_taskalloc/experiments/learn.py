@@ -253,8 +253,7 @@ class LearnRun:
 
     def __post_init__(self) -> None:
         check_counts({"seeds": self.seeds})
-        if not (isinstance(self.first_seed, int) and not isinstance(self.first_seed, bool) and self.first_seed >= 0):
-            raise ValueError(f"first_seed must be an int ≥ 0, got {self.first_seed!r}")
+        check_counts({"first_seed": self.first_seed}, minimum=0)
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
 

@@ -214,8 +214,7 @@ class TAMPolicy(BasePolicy):
                 select_decision_samples=select_decision_samples,
             )
         )
-        if not (isinstance(select_pair_hidden, int) and select_pair_hidden >= 0):
-            raise ValueError(f"select_pair_hidden must be an integer ≥ 0 (0: no pair MLP), got {select_pair_hidden!r}")
+        check_counts(dict(select_pair_hidden=select_pair_hidden, decision_exact_top=decision_exact_top), minimum=0)
         self.select_pair_hidden = select_pair_hidden
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
@@ -240,8 +239,6 @@ class TAMPolicy(BasePolicy):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
         if not isinstance(select_decision_exact, bool):
             raise ValueError(f"select_decision_exact must be True or False, got {select_decision_exact!r}")
-        if not (isinstance(decision_exact_top, int) and not isinstance(decision_exact_top, bool) and decision_exact_top >= 0):
-            raise ValueError(f"decision_exact_top must be an integer ≥ 0 (0: off), got {decision_exact_top!r}")
         if decision_exact_top and decision_samples > 1:
             raise ValueError(
                 f"decision_exact_top={decision_exact_top} and decision_samples={decision_samples} both choose the "
