@@ -720,6 +720,65 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     assert not (tmp_path / "cli").exists()
 
 
+def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monkeypatch):
+    """``more_episodes`` evaluates the finished models on the held-out reset seeds that follow the run's own (never
+    another seed's), against Greedy only, and reports each seed over the run's and the further episodes, paired by
+    episode; bad values are refused before any work."""
+    import json
+
+    import numpy as np
+
+    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments.__main__ import main
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
+    run = learn.LearnRun("Almighty", 2, steps=3, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(), out=tmp_path)
+    run.run(progress=False)
+    evaluated: list[tuple[int, ...]] = []
+    returns = learn.episode_returns
+    monkeypatch.setattr(
+        learn, "episode_returns", lambda agent, env_id, seeds: evaluated.append(tuple(seeds)) or returns(agent, env_id, seeds)
+    )
+    monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("the MILP ran"))
+    path = run.reevaluate(more_episodes=3)
+    assert path.name == "Almighty_more_episodes_3.md"
+    assert sorted(set(evaluated)) == [tuple(learn.eval_seeds(seed, 5)[2:]) for seed in (0, 1)] and len(evaluated) == 6
+    text = path.read_text()
+    assert "3 further held-out episodes per seed" in text and "--more-episodes 3`" in text and "| MILP" not in text
+    rows = json.loads(path.with_suffix(".json").read_text())["seeds"]
+    for row in rows:
+        own = json.loads(run.seed_path(row["seed"]).read_text())
+        lead = np.array(own["trained"] + row["trained"]) - np.array(own["Greedy"] + row["Greedy"])
+        trained = np.mean(own["trained"] + row["trained"])
+        assert f"| {row['seed']} | 5 | " in text and f"| {trained:.1f} | " in text
+        assert f"| {lead.mean():+.1f} ± {lead.std(ddof=1) / np.sqrt(5):.1f} |" in text
+    assert "seeds over all episodes" in text
+    for bad, match in ((-1, "more_episodes must be a positive integer"), (True, "positive integer"), (99, "at most 100")):
+        with pytest.raises(ValueError, match=match):
+            run.reevaluate(more_episodes=bad)
+    with pytest.raises(ValueError, match="no shift and no search"):
+        run.reevaluate(decision_samples=2, more_episodes=2)
+    monkeypatch.setattr(learn.LearnRun, "run", lambda *a, **k: pytest.fail("trained before the arguments were checked"))
+    for flags in (["--more-episodes", "-1"], ["--more-episodes", "99"]):
+        with pytest.raises(SystemExit):
+            main(
+                [
+                    "learn",
+                    "--env",
+                    "Almighty",
+                    "--seeds",
+                    "1",
+                    "--steps",
+                    "3",
+                    "--eval-episodes",
+                    "2",
+                    "--out",
+                    str(tmp_path),
+                    *flags,
+                ]
+            )
+
+
 def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path, capsys):
     """``device="cuda"`` trains on CUDA and evaluates on the CPU; its seed files have their own digest and its command and
     title name the device, so a CPU run never reuses them. Where CUDA is missing, the CLI refuses ``--device cuda`` before

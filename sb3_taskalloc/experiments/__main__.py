@@ -100,6 +100,11 @@ def main(argv: list[str] | None = None) -> None:
         help="then evaluate them pre-assigning by the exact cover of each entity's K most probable tasks (with the team "
         "searches above; not with --decision-samples)",
     )  # fmt: skip
+    learn.add_argument(
+        "--more-episodes", type=int, default=0, metavar="N",
+        help="then evaluate the trained and untrained models and Greedy on N further held-out episodes per seed, and "
+        "count the seeds above Greedy over all of them",
+    )  # fmt: skip
     args = parser.parse_args(argv)
 
     import torch as th
@@ -132,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    from sb3_taskalloc.experiments.learn import DECISION_SEARCHES, PLANNERS, LearnRun
+    from sb3_taskalloc.experiments.learn import DECISION_SEARCHES, EPISODES_PER_SEED, PLANNERS, LearnRun
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
@@ -156,11 +161,18 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
                    out=args.out, validation_episodes=args.validation_episodes,
                    select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation,
                    first_seed=args.first_seed, device=args.device)  # fmt: skip
-    for flag, least in (("decision_samples", 1), ("select_decision_samples", 1), ("decision_exact_top", 0)):
+    for flag, least in (
+        ("decision_samples", 1),
+        ("select_decision_samples", 1),
+        ("decision_exact_top", 0),
+        ("more_episodes", 0),
+    ):
         if getattr(args, flag) < least:
             parser.error(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")
     if args.decision_exact_top and args.decision_samples > 1:
         parser.error("--decision-exact-top and --decision-samples both choose the pre-assignment: give one of them")
+    if args.eval_episodes + args.more_episodes > EPISODES_PER_SEED:  # each seed's share of the held-out reset seeds
+        parser.error(f"--eval-episodes + --more-episodes must be at most {EPISODES_PER_SEED}")
     path = run.run(jobs=args.jobs)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
@@ -168,6 +180,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     searches = {name: getattr(args, name) for name, (off, _) in DECISION_SEARCHES.items() if getattr(args, name) != off}
     if searches:
         evaluations += [(None, searches), *([(args.zero_shot, searches)] if args.zero_shot else [])]
+    if args.more_episodes:
+        evaluations.append((None, {"more_episodes": args.more_episodes}))
     for shift, searched in evaluations:
         again = run.reevaluate(shift, **searched)
         print(again.read_text())

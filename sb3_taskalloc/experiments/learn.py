@@ -106,9 +106,13 @@ def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -
     return f"{mean:.{digits}f}" + (f" ({defined} of {len(records)} seeds)" if defined < len(records) else "")
 
 
+#: Held-out reset seeds reserved for each training seed: 10,000 + 100·seed + k for k below this.
+EPISODES_PER_SEED = 100
+
+
 def eval_seeds(seed: int, episodes: int) -> list[int]:
     """Reset seeds of the held-out evaluation episodes of training seed ``seed`` (disjoint from training seeds)."""
-    return [10_000 + 100 * seed + k for k in range(episodes)]
+    return [10_000 + EPISODES_PER_SEED * seed + k for k in range(episodes)]
 
 
 def validation_seeds(seed: int, episodes: int) -> list[int]:
@@ -623,6 +627,7 @@ class LearnRun:
         select_decision_samples: int = 1,
         select_decision_exact: bool = False,
         decision_exact_top: int = 0,
+        more_episodes: int = 0,
     ) -> Path:
         """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
         env (``shift``, zero-shot) or of the training env, deciding with the decision-time searches of
@@ -632,6 +637,11 @@ class LearnRun:
         ``.json``. Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes,
         under a digest of its model file and the versions of the searches' rules (:data:`SEARCH_RULES`), so an
         interrupted re-evaluation resumes at the seed it stopped in.
+
+        :param more_episodes: instead, the plain argmax on this many further held-out episodes per seed of the training
+            env (the reset seeds that follow the run's own, :func:`eval_seeds`), against Greedy only; the report also
+            counts the seeds above Greedy over all the run's and the further episodes, whose seed means carry a smaller
+            standard error than the run's own (``<out>/<env>_more_episodes_<N>``)
         :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
@@ -640,7 +650,17 @@ class LearnRun:
         values = dict(zip(DECISION_SEARCHES, (decision_samples, select_decision_samples, select_decision_exact,
                                               decision_exact_top), strict=True))  # fmt: skip
         on = [(name, value) for name, value in values.items() if value != DECISION_SEARCHES[name][0]]
+        if more_episodes:
+            check_counts({"more_episodes": more_episodes})
+            if shift or on:
+                raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no search")
+            if self.eval_episodes + more_episodes > EPISODES_PER_SEED:
+                raise ValueError(
+                    f"eval_episodes + more_episodes must be at most {EPISODES_PER_SEED} (each seed's share of the held-out "
+                    f"reset seeds), got {self.eval_episodes} + {more_episodes}"
+                )
         searched = "".join(f"_{name}" + ("" if value is True else f"_{value}") for name, value in on)
+        searched += f"_more_episodes_{more_episodes}" if more_episodes else ""
         stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
         # The first two searches are always named, the others only when on, so earlier searches' files keep their contents.
         searches: dict[str, Any] = {
@@ -658,7 +678,7 @@ class LearnRun:
             if saved.get("model_digest") == model_digest and saved.get("rules", dict.fromkeys(rules, 1)) == rules:
                 rows.append(saved)
                 continue
-            seeds = eval_seeds(seed, self.eval_episodes)
+            seeds = eval_seeds(seed, self.eval_episodes + more_episodes)[-(more_episodes or self.eval_episodes) :]
             trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
             kwargs = {**trained.policy_kwargs, **searches}
             for name, value in searches.items():
@@ -666,17 +686,22 @@ class LearnRun:
             untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=kwargs)
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
                    "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
-            row.update({"Greedy": episode_returns(b.GreedyAllocator(), env_id, seeds)} if shift else self.baselines(seed))
+            if shift or more_episodes:  # the per-step MILP takes seconds per step: the training env's held-out episodes only
+                row["Greedy"] = episode_returns(b.GreedyAllocator(), env_id, seeds)
+            else:
+                row.update(self.baselines(seed))
             row["model_digest"], row["rules"] = model_digest, rules
             atomic_write_text(done, json.dumps(row) + "\n")
             rows.append(row)
         settings = {"settings": self.describe(), "env": env_id, **searches, "seeds": rows}
         atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
-        columns = ["untrained", "trained", "Greedy", *([] if shift else ["MILP"])]
+        columns = ["untrained", "trained", "Greedy", *([] if shift or more_episodes else ["MILP"])]
         means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
-        how = ", ".join(["zero-shot" if shift else "held-out episodes", *(DECISION_SEARCHES[n][1].format(v) for n, v in on)])
+        what = f"{more_episodes} further held-out episodes per seed" if more_episodes else "held-out episodes"
+        how = ", ".join(["zero-shot" if shift else what, *(DECISION_SEARCHES[n][1].format(v) for n, v in on)])
         flags = f" --zero-shot {shift}" if shift else ""
         flags += "".join(f" --{name.replace('_', '-')}" + ("" if value is True else f" {value}") for name, value in on)
+        flags += f" --more-episodes {more_episodes}" if more_episodes else ""
         lines = [
             f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
             "",
@@ -690,9 +715,39 @@ class LearnRun:
             f"- trained ≥ Greedy: {int((means['trained'] >= means['Greedy']).sum())} of {len(rows)} seeds (target all)",
             f"- trained > untrained: {int((means['trained'] > means['untrained']).sum())} of {len(rows)} seeds, "
             f"{means['trained'].mean() / means['untrained'].mean():.3f} × (means)",
-            *([] if shift else [f"- trained / per-step MILP (means): {means['trained'].mean() / means['MILP'].mean():.3f}"]),
+            *(
+                []
+                if shift or more_episodes
+                else [f"- trained / per-step MILP (means): {means['trained'].mean() / means['MILP'].mean():.3f}"]
+            ),
+            *(self._over_all_episodes(rows) if more_episodes else []),
         ]
         return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+
+    def _over_all_episodes(self, rows: list[dict[str, Any]]) -> list[str]:
+        """The report's lines of :meth:`reevaluate`'s ``more_episodes``: each seed over the run's own held-out episodes
+        and the further ones together, with the standard error of its mean lead over Greedy (paired by episode)."""
+        header = "| seed | episodes | untrained | trained | Greedy | trained − Greedy ± s.e. |"
+        lines = ["", "Over the run's own and the further held-out episodes together:", "", header, "|---" * 6 + "|"]
+        leads, gains = [], []
+        for row in rows:
+            own = json.loads(self.seed_path(row["seed"]).read_text())
+            both = {c: np.array(own[c] + row[c]) for c in ("untrained", "trained", "Greedy")}
+            lead = both["trained"] - both["Greedy"]
+            leads.append(lead.mean())
+            gains.append(both["trained"].mean() - both["untrained"].mean())
+            lines.append(
+                f"| {row['seed']} | {lead.size} | {both['untrained'].mean():.1f} | {both['trained'].mean():.1f} | "
+                f"{both['Greedy'].mean():.1f} | {lead.mean():+.1f} ± {lead.std(ddof=1) / np.sqrt(lead.size):.1f} |"
+            )
+        leads_, gains_ = np.array(leads), np.array(gains)
+        return [
+            *lines,
+            "",
+            f"- trained ≥ Greedy: {int((leads_ >= 0).sum())} of {len(rows)} seeds over all episodes; lead {leads_.mean():+.1f}"
+            f" ± {leads_.std():.1f} per seed",
+            f"- trained > untrained: {int((gains_ > 0).sum())} of {len(rows)} seeds over all episodes",
+        ]
 
     def describe(self) -> dict[str, Any]:
         return {
