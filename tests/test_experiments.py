@@ -558,6 +558,21 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
         patched.setitem(learn.SEARCH_RULES, "decision_samples", 2)  # the search's rule changed: its rows are stale
         with pytest.raises(pytest.fail.Exception, match="evaluated again"):
             run.reevaluate(decision_samples=4)
+    from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
+
+    with monkeypatch.context() as patched:  # code that moves the decisions, with no rule version raised: stale too
+        patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("evaluated again"))
+        run.reevaluate(decision_samples=4)  # the rows saved above, with their fingerprint
+        decide = TAMPolicy._predict
+        patched.setattr(TAMPolicy, "_predict", lambda self, *a, **k: decide(self, *a, **k) + 1)
+        with pytest.raises(pytest.fail.Exception, match="evaluated again"):
+            run.reevaluate(decision_samples=4)
+    from sb3_taskalloc import TwoStageSAC
+
+    model = TwoStageSAC.load(run.seed_path(0).with_suffix(".zip"), device="cpu")
+    model.policy.decision_samples = 4
+    assert json.loads(saved.read_text())["decisions"] == learn.decision_digest(model, "TaskAlloc/EPT-v0")
+    assert learn.decision_digest(model, "TaskAlloc/EPT-v0") == learn.decision_digest(model, "TaskAlloc/EPT-v0")
     both = run.reevaluate(decision_samples=2, select_decision_samples=3)  # and a search of 3 teams per task
     assert both.name == "EPT_decision_samples_2_select_decision_samples_3.md"
     assert "--decision-samples 2 --select-decision-samples 3`" in both.read_text()

@@ -72,10 +72,12 @@ DECISION_SEARCHES: dict[str, tuple[int | bool, str]] = {
     "decision_exact_top": (0, "pre-assigned by the exact cover among each entity's top {} tasks at decision time"),
 }
 FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
-#: Version of each search's decision rule. A re-evaluation row is reused only for the same model file and the same
-#: versions of the searches it ran, so a change to what a search decides must increase its number here (rows saved
-#: before these numbers existed count as version 1). Version 2 of the exact searches stops each HiGHS solve at a node
-#: limit instead of at 1 s (:data:`~sb3_taskalloc.two_stage_sac.select_stage.EXACT_NODE_LIMIT`).
+#: Version of each search's decision rule. A re-evaluation row is reused only for the same model file, the same
+#: decisions on the fingerprint states (:func:`decision_digest`, which sees any change of code or solver that moves
+#: them) and the same versions of the searches it ran (rows saved before these numbers existed count as version 1): a
+#: change to what a search decides that the fingerprint states may not show increases its number here. Version 2 of
+#: the exact searches stops each HiGHS solve at a node limit instead of at 1 s
+#: (:data:`~sb3_taskalloc.two_stage_sac.select_stage.EXACT_NODE_LIMIT`), which changes only the hard steps.
 SEARCH_RULES: dict[str, int] = {**dict.fromkeys(DECISION_SEARCHES, 1), "select_decision_exact": 2, "decision_exact_top": 2}
 
 
@@ -144,6 +146,25 @@ def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable
             done = terminated or truncated
         returns.append(total)
     return returns
+
+
+#: Reset seeds of the states whose decisions fingerprint a policy and its searches (:func:`decision_digest`); no
+#: figure is measured on them.
+FINGERPRINT_SEEDS = (90_000, 90_001)
+
+
+def decision_digest(agent: Any, env_id: str, seeds: Iterable[int] = FINGERPRINT_SEEDS) -> str:
+    """Digest of ``agent``'s deterministic actions in the first state of each episode of ``seeds``, with torch's random
+    state forked at a fixed seed (the sampled searches draw the same, and the caller's draws are untouched)."""
+    import torch as th
+
+    digest = hashlib.sha256()
+    with th.random.fork_rng():
+        th.manual_seed(0)
+        for s in seeds:
+            obs, _ = gym.make(env_id).reset(seed=s)
+            digest.update(np.asarray(agent.predict(obs, deterministic=True)[0], dtype=np.int64).tobytes())
+    return digest.hexdigest()[:16]
 
 
 def _one_thread(parent: int) -> None:
@@ -635,8 +656,9 @@ class LearnRun:
         argmax), against Greedy (and the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>]``
         followed by each search that is on (``_decision_samples_<K>``, ``_select_decision_exact``, ...), ``.md`` and
         ``.json``. Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes,
-        under a digest of its model file and the versions of the searches' rules (:data:`SEARCH_RULES`), so an
-        interrupted re-evaluation resumes at the seed it stopped in.
+        under a digest of its model file, of the model's decisions with the searches on a few fixed states
+        (:func:`decision_digest`) and the versions of the searches' rules (:data:`SEARCH_RULES`), so an interrupted
+        re-evaluation resumes at the seed it stopped in and a change of code that moves those decisions evaluates again.
 
         :param more_episodes: instead, the plain argmax on this many further held-out episodes per seed of the training
             env (the reset seeds that follow the run's own, :func:`eval_seeds`), against Greedy only; the report also
@@ -673,16 +695,18 @@ class LearnRun:
             if not path.exists():
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
             model_digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+            trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
+            for name, value in searches.items():
+                setattr(trained.policy, name, value)
+            decisions = decision_digest(trained, env_id)
             done = self.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{self.key}.json")
             saved = json.loads(done.read_text()) if done.exists() else {}
-            if saved.get("model_digest") == model_digest and saved.get("rules", dict.fromkeys(rules, 1)) == rules:
+            same = saved.get("model_digest") == model_digest and saved.get("decisions", decisions) == decisions
+            if same and saved.get("rules", dict.fromkeys(rules, 1)) == rules:  # rows saved before either key: as they were
                 rows.append(saved)
                 continue
             seeds = eval_seeds(seed, self.eval_episodes + more_episodes)[-(more_episodes or self.eval_episodes) :]
-            trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
             kwargs = {**trained.policy_kwargs, **searches}
-            for name, value in searches.items():
-                setattr(trained.policy, name, value)
             untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=kwargs)
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
                    "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
@@ -690,7 +714,7 @@ class LearnRun:
                 row["Greedy"] = episode_returns(b.GreedyAllocator(), env_id, seeds)
             else:
                 row.update(self.baselines(seed))
-            row["model_digest"], row["rules"] = model_digest, rules
+            row["model_digest"], row["rules"], row["decisions"] = model_digest, rules, decisions
             atomic_write_text(done, json.dumps(row) + "\n")
             rows.append(row)
         settings = {"settings": self.describe(), "env": env_id, **searches, "seeds": rows}
