@@ -167,6 +167,26 @@ def decision_digest(agent: Any, env_id: str, seeds: Iterable[int] = FINGERPRINT_
     return digest.hexdigest()[:16]
 
 
+def _reevaluation_labels(shift: str | None, on: list[tuple[str, Any]], more_episodes: int) -> tuple[str, str, str]:
+    """The file-name suffix, the title's words and the command-line flags of a :meth:`LearnRun.reevaluate`, from its
+    parts in one order: the shift, each search that is on (``(name, value)``), the further episodes."""
+    parts: list[tuple[str, str]] = []  # (file-name part, flag) of each part that is on
+    if shift:
+        parts.append((f"zero_shot_{shift}", f"zero-shot {shift}"))
+    for name, value in on:
+        arg = "" if value is True else f" {value}"
+        parts.append((name + arg.replace(" ", "_"), name.replace("_", "-") + arg))
+    if more_episodes:
+        parts.append((f"more_episodes_{more_episodes}", f"more-episodes {more_episodes}"))
+    first = "held-out episodes"
+    if shift:
+        first = "zero-shot"
+    elif more_episodes:
+        first = f"{more_episodes} further held-out episodes per seed"
+    title = ", ".join([first, *(DECISION_SEARCHES[name][1].format(value) for name, value in on)])
+    return "".join(f"_{part}" for part, _ in parts), title, "".join(f" --{flag}" for _, flag in parts)
+
+
 def _one_thread(parent: int) -> None:
     """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered, and a
     watch that ends the worker when the process that started it is gone (:func:`_exit_with_parent`).
@@ -681,9 +701,8 @@ class LearnRun:
                     f"eval_episodes + more_episodes must be at most {EPISODES_PER_SEED} (each seed's share of the held-out "
                     f"reset seeds), got {self.eval_episodes} + {more_episodes}"
                 )
-        searched = "".join(f"_{name}" + ("" if value is True else f"_{value}") for name, value in on)
-        searched += f"_more_episodes_{more_episodes}" if more_episodes else ""
-        stem = Path(self.out) / (self.env + (f"_zero_shot_{shift}" if shift else "") + searched)
+        suffix, how, flags = _reevaluation_labels(shift, on, more_episodes)
+        stem = Path(self.out) / (self.env + suffix)
         # The first two searches are always named, the others only when on, so earlier searches' files keep their contents.
         searches: dict[str, Any] = {
             name: value for name, value in values.items() if (name, value) in on or name in FIRST_SEARCHES
@@ -721,11 +740,6 @@ class LearnRun:
         atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
         columns = ["untrained", "trained", "Greedy", *([] if shift or more_episodes else ["MILP"])]
         means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
-        what = f"{more_episodes} further held-out episodes per seed" if more_episodes else "held-out episodes"
-        how = ", ".join(["zero-shot" if shift else what, *(DECISION_SEARCHES[n][1].format(v) for n, v in on)])
-        flags = f" --zero-shot {shift}" if shift else ""
-        flags += "".join(f" --{name.replace('_', '-')}" + ("" if value is True else f" {value}") for name, value in on)
-        flags += f" --more-episodes {more_episodes}" if more_episodes else ""
         lines = [
             f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
             "",
