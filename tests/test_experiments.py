@@ -774,24 +774,10 @@ def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monke
     with pytest.raises(ValueError, match="no shift and no search"):
         run.reevaluate(decision_samples=2, more_episodes=2)
     monkeypatch.setattr(learn.LearnRun, "run", lambda *a, **k: pytest.fail("trained before the arguments were checked"))
-    for flags in (["--more-episodes", "-1"], ["--more-episodes", "99"]):
+    argv = ["learn", "--env", "Almighty", "--seeds", "1", "--steps", "3", "--eval-episodes", "2", "--out", str(tmp_path)]
+    for more in ("-1", "99"):
         with pytest.raises(SystemExit):
-            main(
-                [
-                    "learn",
-                    "--env",
-                    "Almighty",
-                    "--seeds",
-                    "1",
-                    "--steps",
-                    "3",
-                    "--eval-episodes",
-                    "2",
-                    "--out",
-                    str(tmp_path),
-                    *flags,
-                ]
-            )
+            main([*argv, "--more-episodes", more])
 
 
 def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path, capsys):
