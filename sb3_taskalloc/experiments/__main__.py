@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    from sb3_taskalloc.experiments.learn import DECISION_SEARCHES, EPISODES_PER_SEED, PLANNERS, LearnRun
+    from sb3_taskalloc.experiments.learn import DECISION_SEARCHES, PLANNERS, LearnRun
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
@@ -165,14 +165,15 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         ("decision_samples", 1),
         ("select_decision_samples", 1),
         ("decision_exact_top", 0),
-        ("more_episodes", 0),
     ):
         if getattr(args, flag) < least:
             parser.error(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")
     if args.decision_exact_top and args.decision_samples > 1:
         parser.error("--decision-exact-top and --decision-samples both choose the pre-assignment: give one of them")
-    if args.eval_episodes + args.more_episodes > EPISODES_PER_SEED:  # each seed's share of the held-out reset seeds
-        parser.error(f"--eval-episodes + --more-episodes must be at most {EPISODES_PER_SEED}")
+    try:  # before any training
+        run.check_more_episodes(args.more_episodes)
+    except ValueError as error:
+        parser.error(f"--more-episodes: {error}")
     path = run.run(jobs=args.jobs)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")

@@ -692,15 +692,9 @@ class LearnRun:
         values = dict(zip(DECISION_SEARCHES, (decision_samples, select_decision_samples, select_decision_exact,
                                               decision_exact_top), strict=True))  # fmt: skip
         on = [(name, value) for name, value in values.items() if value != DECISION_SEARCHES[name][0]]
-        if more_episodes:
-            check_counts({"more_episodes": more_episodes})
-            if shift or on:
-                raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no search")
-            if self.eval_episodes + more_episodes > EPISODES_PER_SEED:
-                raise ValueError(
-                    f"eval_episodes + more_episodes must be at most {EPISODES_PER_SEED} (each seed's share of the held-out "
-                    f"reset seeds), got {self.eval_episodes} + {more_episodes}"
-                )
+        self.check_more_episodes(more_episodes)
+        if more_episodes and (shift or on):
+            raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no search")
         suffix, how, flags = _reevaluation_labels(shift, on, more_episodes)
         stem = Path(self.out) / (self.env + suffix)
         # The first two searches are always named, the others only when on, so earlier searches' files keep their contents.
@@ -724,7 +718,7 @@ class LearnRun:
             if same and saved.get("rules", dict.fromkeys(rules, 1)) == rules:  # rows saved before either key: as they were
                 rows.append(saved)
                 continue
-            seeds = eval_seeds(seed, self.eval_episodes + more_episodes)[-(more_episodes or self.eval_episodes) :]
+            seeds = eval_seeds(seed, self.eval_episodes + more_episodes)[self.eval_episodes if more_episodes else 0 :]
             kwargs = {**trained.policy_kwargs, **searches}
             untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=kwargs)
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
@@ -761,6 +755,17 @@ class LearnRun:
             *(self._over_all_episodes(rows) if more_episodes else []),
         ]
         return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+
+    def check_more_episodes(self, more_episodes: int) -> None:
+        """A clear error where :meth:`reevaluate`'s ``more_episodes`` is neither 0 (off) nor a positive integer, or would
+        reach into the next training seed's held-out reset seeds (each seed has :data:`EPISODES_PER_SEED`)."""
+        if more_episodes:
+            check_counts({"more_episodes": more_episodes})
+        if self.eval_episodes + more_episodes > EPISODES_PER_SEED:
+            raise ValueError(
+                f"eval_episodes + more_episodes must be at most {EPISODES_PER_SEED} (each seed's share of the held-out "
+                f"reset seeds), got {self.eval_episodes} + {more_episodes}"
+            )
 
     def _over_all_episodes(self, rows: list[dict[str, Any]]) -> list[str]:
         """The report's lines of :meth:`reevaluate`'s ``more_episodes``: each seed over the run's own held-out episodes
