@@ -13,7 +13,7 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
 import envs
-from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
 from sb3_taskalloc.two_stage_sac.two_stage_sac import DEFAULT_TOTAL_TIMESTEPS
 
 ABLATIONS = {
@@ -79,6 +79,40 @@ def test_callbacks_and_progress_bar(tmp_path):
     assert (tmp_path / "evaluations.npz").exists()
     assert len(list((tmp_path / "ckpt").glob("*.zip"))) >= 2
     assert np.isfinite(eval_cb.last_mean_reward)
+
+
+def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
+    """:class:`SelectDAggerCallback` is ``distill_select`` after the SAC steps of the same ``learn`` call: the same
+    pointer weights and figures as calling it by hand under the same seed, each iteration logged under ``dagger/``; a
+    later ``learn`` resets the training envs; bad arguments are refused when the callback is made, before training."""
+    env_id = "TaskAlloc/Almighty-v0"
+
+    def new_model() -> TwoStageSAC:
+        return TwoStageSAC("TAMPolicy", make_vec_env(env_id, n_envs=2, seed=0), learning_starts=4, batch_size=4, seed=0,
+                           device="cpu", policy_kwargs={"hidden_dim": 16})  # fmt: skip
+
+    dagger = {"iterations": 2, "episodes": 8, "epochs": 2, "imitation": "set"}
+    model = new_model()
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    callback = SelectDAggerCallback(**dagger, seed=7)  # type: ignore[arg-type]
+    model.learn(12, callback=callback)
+    by_hand = new_model()
+    by_hand.learn(12)
+    trained = {k: v.clone() for k, v in by_hand.policy.selector.state_dict().items()}
+    assert by_hand.distill_select(env_id, seed=7, **dagger) == callback.history  # type: ignore[arg-type]
+    assert [h["iteration"] for h in callback.history] == [1.0, 2.0]
+    taught = by_hand.policy.selector.state_dict()
+    assert any(not th.equal(v, trained[k]) for k, v in taught.items()), "DAgger left the pointer as it was"
+    for key, value in model.policy.selector.state_dict().items():
+        assert th.equal(value, taught[key]), key
+    logged = np.genfromtxt(tmp_path / "progress.csv", delimiter=",", names=True)
+    assert list(logged["daggeriteration"][-2:]) == [1.0, 2.0]  # genfromtxt drops the "/" of "dagger/iteration"
+    assert model._last_obs is None
+    model.learn(4, reset_num_timesteps=False)
+    assert model.num_timesteps == 16
+    for bad in ({"iterations": 0}, {"imitation": "team"}, {"learning_rate": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SelectDAggerCallback(**bad)  # type: ignore[arg-type]
 
 
 def test_default_budget_documented():

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 import envs
-from sb3_taskalloc import TAMPolicy, TwoStageSAC
+from sb3_taskalloc import SelectDAggerCallback, TAMPolicy, TwoStageSAC
 
 pytest.importorskip("rl_zoo3", reason='rl-zoo3 is the optional "zoo" extra')
 
@@ -51,6 +51,16 @@ def test_configs_have_a_valid_block_per_env(name):
     block = {k: v for k, v in config["TaskAlloc/Almighty-v0"].items() if k not in ("policy", "n_timesteps", "n_envs")}
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **block)
     assert model.learning_rate == pytest.approx(1e-3) and model.policy.hidden_dim == 64
+
+
+def test_zoo_config_names_the_dagger_callback():
+    """The ``callback`` entry that :class:`SelectDAggerCallback`'s docstring gives builds it through rl-zoo3."""
+    from rl_zoo3.utils import get_callback_list
+
+    entry = yaml.safe_load(SelectDAggerCallback.__doc__.split("::")[1].split("The rollouts")[0])  # type: ignore[union-attr]
+    (callback,) = get_callback_list(entry)
+    assert isinstance(callback, SelectDAggerCallback)
+    assert callback.kwargs["iterations"] == 8 and callback.kwargs["imitation"] == "set"
 
 
 def test_zoo_train_then_enjoy(tmp_path):

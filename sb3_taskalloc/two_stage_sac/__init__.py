@@ -125,6 +125,7 @@ published code):
    whose better team is not kept (profit ≤ 0) is not labelled. Inside ``train`` the same teacher meets the replayed
    states of the sampled behaviour once each, beside the pointer's SAC loss; here it meets the deployed argmax's own
    states (the distribution the deterministic policy is evaluated on) repeatedly, and the pointer fits its labels.
+   :class:`.SelectDAggerCallback` runs it when ``learn`` ends (one call, or an rl-zoo3 config's ``callback``).
 20. Decision-time team search (``TAMPolicy(select_decision_samples=K_s)``, not in the paper): detail 18's search at
    decision time instead of as a teacher. In a deterministic decision every task of every pre-assign round takes the
    best, by its profit, of the pointer's argmax team and K_s − 1 teams sampled from the pointer at
@@ -150,7 +151,8 @@ published code):
    the myopic optimum, and what the policy's pruning adds shows against both ends.
 """
 
+from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
 from sb3_taskalloc.two_stage_sac.two_stage_sac import PAPER_KWARGS, TwoStageSAC
 
-__all__ = ["PAPER_KWARGS", "TAMPolicy", "TwoStageSAC"]
+__all__ = ["PAPER_KWARGS", "SelectDAggerCallback", "TAMPolicy", "TwoStageSAC"]

@@ -72,6 +72,17 @@ PAPER_KWARGS: dict[str, Any] = {
 }
 
 
+def check_distill_select(
+    iterations: int, episodes: int, epochs: int, learning_rate: float, batch_size: int, imitation: str
+) -> None:
+    """A clear error for the first bad argument of :meth:`TwoStageSAC.distill_select` (named as there), so that a
+    schedule that runs it after training (:class:`.SelectDAggerCallback`) can refuse it before training."""
+    check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
+    check_choices({"imitation": (imitation, ("sequence", "set"))})
+    if not learning_rate > 0:
+        raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
+
+
 class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     """Two-stage discrete soft actor-critic (paper: "A Two-stage Reinforcement Learning-based Approach for
     Multi-entity Task Allocation"), for the ``TaskAlloc`` environments.
@@ -749,10 +760,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
 
         if not self.policy.preassign:
             raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
-        check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
-        check_choices({"imitation": (imitation, ("sequence", "set"))})
-        if not learning_rate > 0:
-            raise ValueError(f"learning_rate must be positive, got {learning_rate!r}")
+        check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)
         vec_env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)
         check_spaces(vec_env.observation_space, vec_env.action_space)
         if vec_env.observation_space != self.observation_space:

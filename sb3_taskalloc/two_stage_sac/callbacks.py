@@ -1,0 +1,75 @@
+"""Callbacks of TwoStageSAC's training schedule, for ``learn(callback=...)`` and rl-zoo3's ``callback`` key."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC, check_distill_select
+
+
+class SelectDAggerCallback(BaseCallback):
+    """Runs :meth:`~sb3_taskalloc.TwoStageSAC.distill_select` when ``learn`` ends: after the TwoStageSAC steps, the pointer
+    is taught the exact most profitable cover of its candidates by DAgger (implementation detail 19). This puts the
+    DAgger phase into one ``learn`` call or an rl-zoo3 config::
+
+        callback:
+          - sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback:
+              iterations: 8
+              imitation: set
+
+    The rollouts run on a fresh env of the training env's id (one copy, so they do not disturb the training envs),
+    and the next ``learn`` call of the model resets its training envs before it collects again.
+
+    :param iterations: rollout-label-fit iterations
+    :param episodes: episodes rolled out per iteration
+    :param epochs: passes over the labels per iteration
+    :param learning_rate: Adam's step size of the fit
+    :param batch_size: decoding rounds per gradient step of the fit
+    :param imitation: ``"sequence"`` or ``"set"`` (see ``distill_select``)
+    :param seed: seed of the rollouts' env; None: the model's seed plus 50,000 (so the rollouts' episodes differ from
+        the training envs' when the model has a seed), or unseeded without one
+    :param verbose: 1 prints each iteration's figures
+    """
+
+    def __init__(
+        self,
+        iterations: int = 4,
+        episodes: int = 10,
+        epochs: int = 8,
+        learning_rate: float = 1e-3,
+        batch_size: int = 32,
+        imitation: str = "sequence",
+        seed: int | None = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)  # before training, not after
+        self.kwargs: dict[str, Any] = {
+            "iterations": iterations,
+            "episodes": episodes,
+            "epochs": epochs,
+            "learning_rate": learning_rate,
+            "batch_size": batch_size,
+            "imitation": imitation,
+        }
+        self.seed = seed
+        self.history: list[dict[str, float]] = []
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_training_end(self) -> None:
+        if not isinstance(self.model, TwoStageSAC):
+            raise TypeError(f"SelectDAggerCallback needs a TwoStageSAC model, got {type(self.model).__name__}")
+        spec = self.training_env.get_attr("spec", indices=0)[0]
+        if spec is None:
+            raise ValueError("SelectDAggerCallback needs a registered training env: its id makes the rollouts' env")
+        seed = self.seed if self.seed is not None else None if self.model.seed is None else self.model.seed + 50_000
+        self.history = self.model.distill_select(spec.id, seed=seed, **self.kwargs)
+        for stats in self.history:
+            for key, value in stats.items():
+                self.logger.record(f"dagger/{key}", value)
+            self.logger.dump(self.num_timesteps)
+        self.model._last_obs = None  # type: ignore[assignment]  # a later learn() resets the training envs
