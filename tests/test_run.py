@@ -113,6 +113,12 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     for bad in ({"iterations": 0}, {"imitation": "team"}, {"learning_rate": 0.0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SelectDAggerCallback(**bad)  # type: ignore[arg-type]
+    unregistered = TwoStageSAC(
+        "TAMPolicy", envs.AlmightyEnv(), learning_starts=4, batch_size=4, policy_kwargs={"hidden_dim": 16}
+    )
+    with pytest.raises(ValueError, match="registered training env"):
+        unregistered.learn(4, callback=SelectDAggerCallback())
+    assert unregistered.num_timesteps == 0  # refused when learn() starts, before any step
 
 
 def test_default_budget_documented():

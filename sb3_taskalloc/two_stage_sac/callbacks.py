@@ -57,17 +57,22 @@ class SelectDAggerCallback(BaseCallback):
         self.seed = seed
         self.history: list[dict[str, float]] = []
 
-    def _on_step(self) -> bool:
-        return True
-
-    def _on_training_end(self) -> None:
+    def _init_callback(self) -> None:
+        # Checked when learn() starts, so that a model or env it cannot distil fails before the training steps.
         if not isinstance(self.model, TwoStageSAC):
             raise TypeError(f"SelectDAggerCallback needs a TwoStageSAC model, got {type(self.model).__name__}")
         spec = self.training_env.get_attr("spec", indices=0)[0]
         if spec is None:
             raise ValueError("SelectDAggerCallback needs a registered training env: its id makes the rollouts' env")
+        self.env_id: str = spec.id
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_training_end(self) -> None:
+        assert isinstance(self.model, TwoStageSAC)
         seed = self.seed if self.seed is not None else None if self.model.seed is None else self.model.seed + 50_000
-        self.history = self.model.distill_select(spec.id, seed=seed, **self.kwargs)
+        self.history = self.model.distill_select(self.env_id, seed=seed, **self.kwargs)
         for stats in self.history:
             for key, value in stats.items():
                 self.logger.record(f"dagger/{key}", value)
