@@ -13,6 +13,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import yaml
 
 from sb3_taskalloc.experiments.budgets import ENVS, METHODS, ROWS
 from sb3_taskalloc.experiments.table import TableRun
@@ -179,6 +180,13 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     runs = [LearnRun("RBF", 1, 0, 1, 1000, kwargs, out=str(tmp_path)) for kwargs in ({}, {"policy_kwargs": {"rounds": 1}})]
     assert runs[0].hyperparameters == block and runs[1].hyperparameters["policy_kwargs"]["heuristic_init"]
     assert runs[0].key != runs[1].key
+    # A callback entry (rl-zoo3's key) is named, not passed on to TwoStageSAC or left out of the run silently.
+    config = tmp_path / "two_stage_sac.yml"
+    entry = {"callback": [{"sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback": {"iterations": 8}}]}
+    config.write_text(yaml.safe_dump({"TaskAlloc/RBF-v0": {"policy": "TAMPolicy", "tau": 0.05, **entry}}))
+    with pytest.raises(ValueError, match=r"TaskAlloc/RBF-v0 has a callback entry.*learn --select-dagger"):
+        zoo_hyperparameters("TaskAlloc/RBF-v0", config)
+    assert zoo_hyperparameters("TaskAlloc/EPT-v0", config) == {}
 
 
 def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):

@@ -120,13 +120,21 @@ FOOTNOTES = {
 
 def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
     """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
-    ``policy`` and ``n_timesteps`` left out); ``{}`` when the file or the block is missing."""
+    ``policy`` and ``n_timesteps`` left out); ``{}`` when the file or the block is missing. A ``callback`` entry
+    (rl-zoo3's key, which ``python -m sb3_taskalloc.zoo`` runs) is refused by name: the experiments do not run the
+    block's callbacks, and leaving one out would report a schedule the zoo does not train."""
     import yaml
 
     path = Path(path) if path else Path(__file__).resolve().parents[2] / "zoo_configs" / "two_stage_sac.yml"
     if not path.exists():
         return {}
     block = dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
+    if "callback" in block:
+        raise ValueError(
+            f"{path}: the block of {env_id} has a callback entry, which the experiments do not run; for "
+            "SelectDAggerCallback use learn --select-dagger N (--dagger-imitation set), or train with "
+            "python -m sb3_taskalloc.zoo"
+        )
     block.pop("policy", None)
     block.pop("n_timesteps", None)
     return block
