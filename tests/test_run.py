@@ -119,6 +119,12 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     with pytest.raises(ValueError, match="registered training env"):
         unregistered.learn(4, callback=SelectDAggerCallback())
     assert unregistered.num_timesteps == 0  # refused when learn() starts, before any step
+    pooled = TwoStageSAC(
+        "TAMPolicy", env_id, learning_starts=4, batch_size=4, policy_kwargs={"hidden_dim": 16, "preassign": False}
+    )
+    with pytest.raises(ValueError, match="pre-assigning policy"):
+        pooled.learn(4, callback=SelectDAggerCallback())
+    assert pooled.num_timesteps == 0
 
 
 def test_default_budget_documented():

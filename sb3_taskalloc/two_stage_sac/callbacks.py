@@ -61,6 +61,7 @@ class SelectDAggerCallback(BaseCallback):
         # Checked when learn() starts, so that a model or env it cannot distil fails before the training steps.
         if not isinstance(self.model, TwoStageSAC):
             raise TypeError(f"SelectDAggerCallback needs a TwoStageSAC model, got {type(self.model).__name__}")
+        self.model.check_distillable()
         spec = self.training_env.get_attr("spec", indices=0)[0]
         if spec is None:
             raise ValueError("SelectDAggerCallback needs a registered training env: its id makes the rollouts' env")

@@ -718,6 +718,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             progress_bar=progress_bar,
         )
 
+    def check_distillable(self) -> None:
+        """A clear error where :meth:`distill_select` cannot teach this model's pointer (a policy without pre-assignment),
+        for a schedule that runs it after training (:class:`.SelectDAggerCallback`) to call before training."""
+        if not self.policy.preassign:
+            raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
+
     def distill_select(
         self,
         env: GymEnv | str,
@@ -758,8 +764,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         """
         from tqdm.auto import tqdm
 
-        if not self.policy.preassign:
-            raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
+        self.check_distillable()
         check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)
         vec_env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)
         check_spaces(vec_env.observation_space, vec_env.action_space)
