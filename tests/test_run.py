@@ -14,6 +14,7 @@ from stable_baselines3.common.vec_env import SubprocVecEnv
 
 import envs
 from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
+from sb3_taskalloc.two_stage_sac.callbacks import dagger_seed
 from sb3_taskalloc.two_stage_sac.two_stage_sac import DEFAULT_TOTAL_TIMESTEPS
 
 ABLATIONS = {
@@ -83,8 +84,9 @@ def test_callbacks_and_progress_bar(tmp_path):
 
 def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     """:class:`SelectDAggerCallback` is ``distill_select`` after the SAC steps of the same ``learn`` call: the same
-    pointer weights and figures as calling it by hand under the same seed, each iteration logged under ``dagger/``; a
-    later ``learn`` resets the training envs; bad arguments are refused when the callback is made, before training."""
+    pointer weights and figures as calling it by hand with the rollout seed :func:`dagger_seed` of the model's seed,
+    each iteration logged under ``dagger/``; a later ``learn`` resets the training envs; bad arguments are refused
+    when the callback is made, before training."""
     env_id = "TaskAlloc/Almighty-v0"
 
     def new_model() -> TwoStageSAC:
@@ -94,12 +96,13 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     dagger = {"iterations": 2, "episodes": 8, "epochs": 2, "imitation": "set"}
     model = new_model()
     model.set_logger(configure(str(tmp_path), ["csv"]))
-    callback = SelectDAggerCallback(**dagger, seed=7)  # type: ignore[arg-type]
+    callback = SelectDAggerCallback(**dagger)  # type: ignore[arg-type]
     model.learn(12, callback=callback)
     by_hand = new_model()
     by_hand.learn(12)
     trained = {k: v.clone() for k, v in by_hand.policy.selector.state_dict().items()}
-    assert by_hand.distill_select(env_id, seed=7, **dagger) == callback.history  # type: ignore[arg-type]
+    # By default the rollouts run on the episodes of the learning experiment's DAgger phase for the model's seed.
+    assert by_hand.distill_select(env_id, seed=dagger_seed(0), **dagger) == callback.history  # type: ignore[arg-type]
     assert [h["iteration"] for h in callback.history] == [1.0, 2.0]
     taught = by_hand.policy.selector.state_dict()
     assert any(not th.equal(v, trained[k]) for k, v in taught.items()), "DAgger left the pointer as it was"

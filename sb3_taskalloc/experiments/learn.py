@@ -43,6 +43,10 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env
 
+# The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
+# validation (30,000 + 100·seed) and diagnosis episodes; SelectDAggerCallback rolls out the same episodes by default.
+from sb3_taskalloc.two_stage_sac.callbacks import dagger_seed
+
 #: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
 #: the expected return Ḡ, the correlation a perfect critic would reach against G, with the number of free entities, and
 #: its preference between two decisions of a state against their paired branch returns (ΔQ against ΔḠ).
@@ -121,12 +125,6 @@ def validation_seeds(seed: int, episodes: int) -> list[int]:
     """Reset seeds of the validation episodes of training seed ``seed``, which pick the best checkpoint
     (``LearnRun(validation_episodes)``): disjoint from the training seeds and from every held-out evaluation episode."""
     return [30_000 + 100 * seed + k for k in range(episodes)]
-
-
-def dagger_seed(seed: int) -> int:
-    """Reset seed of training seed ``seed``'s DAgger rollouts (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`): the
-    episodes run on from ``50_000 + 1000·seed``, clear of the held-out, diagnosis and validation episodes."""
-    return 50_000 + 1000 * seed
 
 
 def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable[[gym.Env], Any] | None = None) -> list[float]:

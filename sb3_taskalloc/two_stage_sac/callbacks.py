@@ -9,6 +9,17 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC, check_distill_select
 
 
+def dagger_seed(seed: int) -> int:
+    """Reset seed of the DAgger rollouts of a model trained under ``seed``: the episodes run on from
+    ``50_000 + 1000·seed``, so the rollouts of different training seeds do not share episodes (up to 1,000 each) and
+    stay clear of the low reset seeds that training envs take from the same seed.
+
+    :param seed: the model's seed
+    :return: the seed of the rollouts' env
+    """
+    return 50_000 + 1000 * seed
+
+
 class SelectDAggerCallback(BaseCallback):
     """Runs :meth:`~sb3_taskalloc.TwoStageSAC.distill_select` when ``learn`` ends: after the TwoStageSAC steps, the pointer
     is taught the exact most profitable cover of its candidates by DAgger (implementation detail 19). This puts the
@@ -28,8 +39,8 @@ class SelectDAggerCallback(BaseCallback):
     :param learning_rate: Adam's step size of the fit
     :param batch_size: decoding rounds per gradient step of the fit
     :param imitation: ``"sequence"`` or ``"set"`` (see ``distill_select``)
-    :param seed: seed of the rollouts' env; None: the model's seed plus 50,000 (so the rollouts' episodes differ from
-        the training envs' when the model has a seed), or unseeded without one
+    :param seed: seed of the rollouts' env; None: :func:`dagger_seed` of the model's seed (the episodes of
+        ``python -m sb3_taskalloc.experiments learn --select-dagger``), or unseeded when the model has no seed
     :param verbose: 1 prints each iteration's figures
     """
 
@@ -72,7 +83,7 @@ class SelectDAggerCallback(BaseCallback):
 
     def _on_training_end(self) -> None:
         assert isinstance(self.model, TwoStageSAC)
-        seed = self.seed if self.seed is not None else None if self.model.seed is None else self.model.seed + 50_000
+        seed = self.seed if self.seed is not None else None if self.model.seed is None else dagger_seed(self.model.seed)
         self.history = self.model.distill_select(self.env_id, seed=seed, **self.kwargs)
         for stats in self.history:
             for key, value in stats.items():
