@@ -9,6 +9,7 @@ import multiprocessing as mp
 import os
 import re
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -180,13 +181,96 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     runs = [LearnRun("RBF", 1, 0, 1, 1000, kwargs, out=str(tmp_path)) for kwargs in ({}, {"policy_kwargs": {"rounds": 1}})]
     assert runs[0].hyperparameters == block and runs[1].hyperparameters["policy_kwargs"]["heuristic_init"]
     assert runs[0].key != runs[1].key
-    # A callback entry (rl-zoo3's key) is named, not passed on to TwoStageSAC or left out of the run silently.
+    # A callback entry (rl-zoo3's key) is not passed on to TwoStageSAC: the DAgger callback is zoo_dagger's, with the
+    # callback's defaults filled in; any other callback, or keywords the callback refuses, are named.
+    from sb3_taskalloc.experiments.budgets import DAGGER_CALLBACK, zoo_dagger
+
     config = tmp_path / "two_stage_sac.yml"
-    entry = {"callback": [{"sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback": {"iterations": 8}}]}
-    config.write_text(yaml.safe_dump({"TaskAlloc/RBF-v0": {"policy": "TAMPolicy", "tau": 0.05, **entry}}))
-    with pytest.raises(ValueError, match=r"TaskAlloc/RBF-v0 has a callback entry.*learn --select-dagger"):
-        zoo_hyperparameters("TaskAlloc/RBF-v0", config)
+
+    def block(*callbacks: Any) -> None:
+        config.write_text(
+            yaml.safe_dump({"TaskAlloc/RBF-v0": {"policy": "TAMPolicy", "tau": 0.05, "callback": list(callbacks)}})
+        )
+
+    block({DAGGER_CALLBACK: {"iterations": 8, "imitation": "set"}})
+    assert zoo_hyperparameters("TaskAlloc/RBF-v0", config) == {"tau": 0.05}
+    defaults = {"episodes": 10, "epochs": 8, "learning_rate": 1e-3, "batch_size": 32}
+    assert zoo_dagger("TaskAlloc/RBF-v0", config) == {"iterations": 8, "imitation": "set", **defaults}
+    for entries, match in (
+        (["stable_baselines3.common.callbacks.CheckpointCallback"], r"TaskAlloc/RBF-v0 has the callback .*CheckpointCallback"),
+        ([{DAGGER_CALLBACK: {"iterations": 0}}], r"TaskAlloc/RBF-v0: .*iterations"),
+        ([{DAGGER_CALLBACK: {"rounds": 2}}], r"TaskAlloc/RBF-v0: .*rounds"),
+        ([{DAGGER_CALLBACK: {"seed": 3}}], "sets a seed"),
+        ([DAGGER_CALLBACK, DAGGER_CALLBACK], "twice"),
+    ):
+        block(*entries)
+        for read in (zoo_dagger, zoo_hyperparameters):
+            with pytest.raises(ValueError, match=match):
+                read("TaskAlloc/RBF-v0", config)
+    assert zoo_dagger("TaskAlloc/EPT-v0", config) == {}
     assert zoo_hyperparameters("TaskAlloc/EPT-v0", config) == {}
+
+
+def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):
+    """A zoo block's ``SelectDAggerCallback`` (:func:`.budgets.zoo_dagger`) is the learning experiment's DAgger phase
+    unless ``select_dagger`` says otherwise: its iterations and loss become the run's, its other keywords reach
+    ``distill_select`` and the seed's digest, the report's command writes them out, and 0 turns it off."""
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments import learn
+
+    zoo = {"iterations": 2, "episodes": 3, "epochs": 8, "learning_rate": 1e-3, "batch_size": 32, "imitation": "set"}
+    monkeypatch.setattr(learn, "zoo_dagger", lambda env_id: dict(zoo))
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
+
+    def new_run(**dagger: Any) -> learn.LearnRun:
+        return learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                              out=tmp_path, **dagger)  # fmt: skip
+
+    run, explicit, off = new_run(), new_run(select_dagger=2, dagger_imitation="set"), new_run(select_dagger=0)
+    assert (run.select_dagger, run.dagger_imitation, run.dagger_kwargs) == (2, "set", {"episodes": 3})
+    assert explicit.key == run.key and "--select-dagger 2 --dagger-imitation set" in run.command()
+    assert "--select-dagger 0" in off.command()  # else the command would run the block's DAgger again
+    monkeypatch.setattr(learn, "zoo_dagger", lambda env_id: {})
+    assert new_run(select_dagger=2, dagger_imitation="set").key != run.key  # the block's episodes count
+    assert new_run().select_dagger == 0 and new_run().key == off.key
+    calls: list[dict] = []
+    real = TwoStageSAC.distill_select
+
+    def counted(self, env, callback, **kw):
+        calls.append(kw)
+        return real(self, env, callback=callback, **kw)
+
+    monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
+    record = run.run_seed(0)
+    assert calls == [{"iterations": 2, "imitation": "set", "seed": learn.dagger_seed(0), "episodes": 3}]
+    assert len(record["dagger"]) == 2 and [p[0] for p in record["curve"][-2:]] == [9, 12]  # 3 one-step episodes each
+
+
+def test_table_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):
+    """A zoo block's ``SelectDAggerCallback`` runs after the training steps of the table's pre-assigning TwoStageSAC
+    columns (W/o Pre shares one pool: none), under the budget's caps and on the budget's episodes, and enters the
+    digests of those columns' cells and models only."""
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments import table
+
+    zoo = {"iterations": 4, "episodes": 10, "epochs": 8, "learning_rate": 1e-3, "batch_size": 32, "imitation": "set"}
+    keys = {}
+    for dagger in ({}, zoo):
+        monkeypatch.setattr(table, "zoo_dagger", lambda env_id, dagger=dagger: dict(dagger))
+        run = TableRun("RBF", 1, "smoke", tmp_path, methods=["Ours", "W/o Pre (sequence)"], progress=False)
+        keys[bool(dagger)] = {name: run.cell_key(name, "train") for name in run.methods}
+    assert keys[True]["Ours"] != keys[False]["Ours"] and keys[True]["W/o Pre (sequence)"] == keys[False]["W/o Pre (sequence)"]
+    calls: list[tuple] = []
+    real = TwoStageSAC.distill_select
+
+    def counted(self, env, **kw):
+        calls.append((env.spec.max_episode_steps, kw["iterations"], kw["episodes"], kw["epochs"], kw["imitation"]))
+        return real(self, env, **kw)
+
+    monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
+    run.trained("Ours", 0)
+    run.trained("W/o Pre (sequence)", 0)
+    assert calls == [(run.budget.max_episode_steps, 1, 1, 1, "set")]  # the smoke budget's caps over the block's
 
 
 def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -128,6 +130,14 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     with pytest.raises(ValueError, match="pre-assigning policy"):
         pooled.learn(4, callback=SelectDAggerCallback())
     assert pooled.num_timesteps == 0
+
+
+def test_select_dagger_callback_defaults_are_distill_selects():
+    """The callback's keywords default to ``distill_select``'s, so a schedule written either way is the same DAgger."""
+    parameters = inspect.signature(TwoStageSAC.distill_select).parameters
+    defaults = SelectDAggerCallback().kwargs
+    assert defaults == {name: parameters[name].default for name in defaults}
+    assert set(parameters) - set(defaults) == {"self", "env", "seed", "progress_bar", "callback"}
 
 
 def test_default_budget_documented():

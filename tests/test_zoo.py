@@ -13,6 +13,7 @@ import yaml
 
 import envs
 from sb3_taskalloc import SelectDAggerCallback, TAMPolicy, TwoStageSAC
+from sb3_taskalloc.experiments.budgets import zoo_dagger
 
 pytest.importorskip("rl_zoo3", reason='rl-zoo3 is the optional "zoo" extra')
 
@@ -46,6 +47,8 @@ def test_configs_have_a_valid_block_per_env(name):
         block = dict(config[env_id])
         assert block.pop("policy") == "TAMPolicy" and block.pop("n_timesteps") > 0
         assert block.pop("n_envs", 1) >= 1  # rl-zoo3's key: the VecEnv, not a TwoStageSAC keyword
+        if block.pop("callback", None) is not None:  # rl-zoo3's key: only the DAgger callback, which the experiments run
+            zoo_dagger(env_id, CONFIGS / name)
         assert set(block) <= algo_args, set(block) - algo_args
         assert set(block["policy_kwargs"]) <= policy_args
     block = {k: v for k, v in config["TaskAlloc/Almighty-v0"].items() if k not in ("policy", "n_timesteps", "n_envs")}

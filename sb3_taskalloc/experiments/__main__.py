@@ -64,12 +64,14 @@ def main(argv: list[str] | None = None) -> None:
         help="curve on this many validation episodes per seed, and its best checkpoint evaluated too (0: off)",
     )
     learn.add_argument(
-        "--select-dagger", type=int, default=0, metavar="N",
-        help="after the steps, N DAgger iterations teaching the pointer the exact cover of its candidates (0: off)",
+        "--select-dagger", type=int, default=None, metavar="N",
+        help="after the steps, N DAgger iterations teaching the pointer the exact cover of its candidates (0: off; "
+        "default: the zoo block's SelectDAggerCallback, off without one)",
     )  # fmt: skip
     learn.add_argument(
-        "--dagger-imitation", choices=("sequence", "set"), default="sequence",
-        help="DAgger's loss: each labelled pick in the label's order, or any member of the cover not picked yet",
+        "--dagger-imitation", choices=("sequence", "set"), default=None,
+        help="DAgger's loss: each labelled pick in the label's order, or any member of the cover not picked yet "
+        "(default: the zoo block's, else sequence)",
     )  # fmt: skip
     learn.add_argument("--planners", nargs="+", default=None, help="planner classes, or 'none' (default: GA, PSO, SOS)")
     learn.add_argument(
@@ -141,8 +143,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
-    if args.steps < (0 if args.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
-        parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
+    if args.select_dagger is not None and args.select_dagger < 0:
+        parser.error(f"--select-dagger must be >= 0, got {args.select_dagger}")
     if args.first_seed < 0:
         parser.error(f"--first-seed must be >= 0, got {args.first_seed}")
     from sb3_taskalloc.common.utils import cuda_unavailable
@@ -151,8 +153,6 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error(why)
     if args.validation_episodes < 0:
         parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
-    if args.select_dagger < 0:
-        parser.error(f"--select-dagger must be >= 0, got {args.select_dagger}")
     planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
     unknown = set(planners) - set(PLANNERS)
     if unknown:
@@ -161,6 +161,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
                    out=args.out, validation_episodes=args.validation_episodes,
                    select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation,
                    first_seed=args.first_seed, device=args.device)  # fmt: skip
+    if args.steps < (0 if run.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
+        parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
     for flag, least in (
         ("decision_samples", 1),
         ("select_decision_samples", 1),

@@ -109,6 +109,10 @@ BUDGETS: dict[str, Budget] = {
     ),
 }
 
+#: SelectDAggerCallback keywords of a budget over the zoo block's (:func:`zoo_dagger`): the smoke budget checks the
+#: table's DAgger phase in seconds.
+DAGGER_BUDGET: dict[str, dict[str, Any]] = {"smoke": {"iterations": 1, "episodes": 1, "epochs": 1}}
+
 FOOTNOTES = {
     "size": "n/a (size): the method's networks are built for the training env's entity/task counts (encoder='mlp', "
     "mixer='global', MaskablePPO's flat policy); the preset has other counts.",
@@ -118,26 +122,63 @@ FOOTNOTES = {
 }
 
 
-def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
-    """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
-    ``policy`` and ``n_timesteps`` left out); ``{}`` when the file or the block is missing. A ``callback`` entry
-    (rl-zoo3's key, which ``python -m sb3_taskalloc.zoo`` runs) is refused by name: the experiments do not run the
-    block's callbacks, and leaving one out would report a schedule the zoo does not train."""
+#: rl-zoo3's import path of the one callback of a zoo block that the experiments run: the DAgger of the pointer, which
+#: ``learn`` runs as its DAgger phase (``--select-dagger``) and the table after training its columns.
+DAGGER_CALLBACK = "sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback"
+
+
+def _zoo_block(env_id: str, path: str | Path | None) -> tuple[Path, dict[str, Any]]:
+    """The config file read and ``env_id``'s block in it (``{}`` when the file or the block is missing)."""
     import yaml
 
     path = Path(path) if path else Path(__file__).resolve().parents[2] / "zoo_configs" / "two_stage_sac.yml"
     if not path.exists():
-        return {}
-    block = dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
-    if "callback" in block:
-        raise ValueError(
-            f"{path}: the block of {env_id} has a callback entry, which the experiments do not run; for "
-            "SelectDAggerCallback use learn --select-dagger N (--dagger-imitation set), or train with "
-            "python -m sb3_taskalloc.zoo"
-        )
-    block.pop("policy", None)
-    block.pop("n_timesteps", None)
+        return path, {}
+    return path, dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
+
+
+def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
+    """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
+    ``policy``, ``n_timesteps`` and ``callback`` left out); ``{}`` when the file or the block is missing. The block's
+    callbacks are :func:`zoo_dagger`'s, which refuses any the experiments do not run (``learn`` and the table run its
+    DAgger; ``bench``, ``diagnose`` and the demo measure the TwoStageSAC steps alone)."""
+    path, block = _zoo_block(env_id, path)
+    zoo_dagger(env_id, path)
+    for key in ("policy", "n_timesteps", "callback"):
+        block.pop(key, None)
     return block
+
+
+def zoo_dagger(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
+    """Keywords of the :class:`~sb3_taskalloc.SelectDAggerCallback` in ``env_id``'s ``callback`` entry of
+    ``zoo_configs/two_stage_sac.yml`` (rl-zoo3's key; ``python -m sb3_taskalloc.zoo`` runs it when training ends), with
+    the callback's defaults filled in and ``seed`` left out; ``{}`` when the block has none. The experiments run it as
+    their DAgger phase after the training steps. Any other callback, a second DAgger entry or keywords the callback
+    refuses raise a ValueError naming the file and the block: an entry the experiments dropped would report a schedule
+    the zoo does not train."""
+    path, block = _zoo_block(env_id, path)
+    entries = block.get("callback") or []
+    dagger: dict[str, Any] = {}
+    for entry in entries if isinstance(entries, list) else [entries]:
+        name, kwargs = next(iter(entry.items())) if isinstance(entry, dict) and len(entry) == 1 else (entry, {})
+        where = f"{path}: the block of {env_id}"
+        if name != DAGGER_CALLBACK:
+            raise ValueError(
+                f"{where} has the callback {name!r}, which the experiments do not run (they run {DAGGER_CALLBACK} as "
+                "their DAgger phase); train with python -m sb3_taskalloc.zoo to run it"
+            )
+        if dagger:
+            raise ValueError(f"{where} has {DAGGER_CALLBACK} twice")
+        from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback
+
+        try:
+            callback = SelectDAggerCallback(**(kwargs or {}))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{where}: {DAGGER_CALLBACK}: {error}") from error
+        if callback.seed is not None:
+            raise ValueError(f"{where}: {DAGGER_CALLBACK} sets a seed; the experiments seed each training seed's rollouts")
+        dagger = dict(callback.kwargs)
+    return dagger
 
 
 def over_zoo(env_id: str, overrides: dict[str, Any]) -> dict[str, Any]:

@@ -41,11 +41,11 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
-from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env
+from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env, zoo_dagger
 
 # The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
 # validation (30,000 + 100·seed) and diagnosis episodes; SelectDAggerCallback rolls out the same episodes by default.
-from sb3_taskalloc.two_stage_sac.callbacks import dagger_seed
+from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback, dagger_seed
 
 #: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
 #: the expected return Ḡ, the correlation a perfect critic would reach against G, with the number of free entities, and
@@ -270,8 +270,10 @@ class LearnRun:
         candidates by this many DAgger iterations (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`, 10 training
         episodes each, reset seeds :func:`dagger_seed` on), and the model before it is evaluated too (column "before
         DAgger"); the curve goes on through DAgger, and a better point on the validation episodes replaces the best
-        checkpoint
-    :param dagger_imitation: DAgger's loss, ``"sequence"`` or ``"set"`` (``imitation`` of ``distill_select``)
+        checkpoint. None: the iterations of the env block's ``SelectDAggerCallback`` (:func:`.budgets.zoo_dagger`), 0
+        without one; the block's other DAgger keywords (episodes, epochs, step size, batch) apply either way
+    :param dagger_imitation: DAgger's loss, ``"sequence"`` or ``"set"`` (``imitation`` of ``distill_select``); None: the
+        block's, ``"sequence"`` without one
     :param first_seed: the first training seed; a replicate of a run on seeds it has not seen starts past its last seed
         (every seed's held-out, validation and DAgger episodes are derived from it, so they are new episodes too)
     :param device: where the training runs, ``"cpu"`` or ``"cuda"``. The trained model is evaluated and diagnosed on
@@ -289,8 +291,8 @@ class LearnRun:
     milp_time_limit: float = 2.0
     out: str | Path = "results/learn"
     validation_episodes: int = 0
-    select_dagger: int = 0
-    dagger_imitation: str = "sequence"
+    select_dagger: int | None = None
+    dagger_imitation: str | None = None
     first_seed: int = 0
     device: str = "cpu"
 
@@ -299,6 +301,26 @@ class LearnRun:
         check_counts({"first_seed": self.first_seed}, minimum=0)
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        zoo = zoo_dagger(self.env_id)
+        self.zoo_has_dagger = bool(zoo)
+        iterations, imitation = zoo.pop("iterations", 0), zoo.pop("imitation", "sequence")
+        self.select_dagger = iterations if self.select_dagger is None else self.select_dagger
+        self.dagger_imitation = imitation if self.dagger_imitation is None else self.dagger_imitation
+        defaults = SelectDAggerCallback().kwargs
+        #: The block's DAgger keywords other than the iterations and the loss, where they differ from the defaults.
+        self.dagger_kwargs: dict[str, Any] = {k: v for k, v in zoo.items() if v != defaults[k]}
+
+    @property
+    def iterations(self) -> int:
+        """DAgger iterations after the steps (``select_dagger`` resolved)."""
+        assert self.select_dagger is not None
+        return self.select_dagger
+
+    @property
+    def imitation(self) -> str:
+        """DAgger's loss (``dagger_imitation`` resolved)."""
+        assert self.dagger_imitation is not None
+        return self.dagger_imitation
 
     @property
     def seed_range(self) -> range:
@@ -323,6 +345,8 @@ class LearnRun:
             settings += (("select_dagger", self.select_dagger),)
             if self.dagger_imitation != "sequence":  # appended only when set: the digests of earlier DAgger runs stay valid
                 settings += (("dagger_imitation", self.dagger_imitation),)
+            if self.dagger_kwargs:
+                settings += (("dagger_kwargs", self.dagger_kwargs),)
         if self.device != "cpu":  # appended only when set: the digests of CPU runs stay valid
             settings += (("device", self.device),)
         return config_key(env_settings(self.env_id), self.hyperparameters, settings)
@@ -401,7 +425,12 @@ class LearnRun:
 
         t0 = time.perf_counter()
         record["dagger"] = model.distill_select(
-            self.env_id, iterations=self.select_dagger, imitation=self.dagger_imitation, seed=dagger_seed(seed), callback=point
+            self.env_id,
+            iterations=self.iterations,
+            imitation=self.imitation,
+            seed=dagger_seed(seed),
+            callback=point,
+            **self.dagger_kwargs,
         )
         record["dagger_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["train_seconds"] += record["dagger_seconds"]
@@ -800,6 +829,7 @@ class LearnRun:
             "validation_episodes": self.validation_episodes,
             "select_dagger": self.select_dagger,
             "dagger_imitation": self.dagger_imitation,
+            **({"dagger_kwargs": self.dagger_kwargs} if self.dagger_kwargs else {}),
             "first_seed": self.first_seed,
             "device": self.device,
             "key": self.key,
@@ -810,9 +840,10 @@ class LearnRun:
         planners = " --planners " + (" ".join(self.planners) if self.planners else "none")
         if self.validation_episodes:
             planners += f" --validation-episodes {self.validation_episodes}"
-        if self.select_dagger:
+        if self.select_dagger or self.zoo_has_dagger:  # 0 is written out when it turns the zoo block's DAgger off
             planners += f" --select-dagger {self.select_dagger}"
-            planners += f" --dagger-imitation {self.dagger_imitation}" if self.dagger_imitation != "sequence" else ""
+        if self.select_dagger and (self.dagger_imitation != "sequence" or self.zoo_has_dagger):
+            planners += f" --dagger-imitation {self.dagger_imitation}"
         if self.first_seed:
             planners += f" --first-seed {self.first_seed}"
         if self.device != "cpu":

@@ -4,7 +4,8 @@ Rows: train, zero-shot (entity), few-shot (entity), zero-shot (task), few-shot (
 W/o Pre (sequence), W/o Pre (random), W/o AMIX, W/o TAM, Greedy, MILP, MaskablePPO. A cell is the mean ± std over
 seeds of each seed's mean deterministic return over ``eval_episodes`` seeded evaluation episodes.
 
-- Train: the method trained on ``TaskAlloc/<Env>-v0`` for ``train_steps`` (RL) or run on it (baselines).
+- Train: the method trained on ``TaskAlloc/<Env>-v0`` for ``train_steps`` (RL) or run on it (baselines); a zoo block's
+  ``SelectDAggerCallback`` runs after the training steps of the TwoStageSAC columns that pre-assign.
 - Zero-shot: the trained model on the ``EntityShift`` / ``TaskShift`` preset, no learning (baselines: run there).
 - Few-shot: the trained model fine-tuned on the preset for ``few_shot_steps`` (the paper: 200 episodes).
 - From scratch: Ours trained on the preset itself with the training budget: the reference of the zero-shot goal
@@ -35,6 +36,7 @@ import numpy as np
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text, check_choices
 from sb3_taskalloc.experiments.budgets import (
     BUDGETS,
+    DAGGER_BUDGET,
     ENVS,
     FOOTNOTES,
     METHODS,
@@ -45,6 +47,7 @@ from sb3_taskalloc.experiments.budgets import (
     config_key,
     env_settings,
     row_env,
+    zoo_dagger,
     zoo_hyperparameters,
 )
 
@@ -135,7 +138,10 @@ class TableRun:
         learner = budget.sac if method.kind == "sac" else budget.ppo if method.kind == "ppo" else None
         zoo = self._zoo if method.kind == "sac" else None
         steps = budget.steps(self.env, budget.train_episodes)
-        return [method, env_settings(row_env(self.env, row)), steps, learner, budget.max_episode_steps, zoo]
+        settings: list[Any] = [method, env_settings(row_env(self.env, row)), steps, learner, budget.max_episode_steps, zoo]
+        if dagger := self._dagger(method):  # appended only when set: the digests of runs without it stay valid
+            settings.append(("dagger", dagger))
+        return settings
 
     def cell_key(self, name: str, row: str) -> str:
         """The configuration a cell of ``name`` in ``row`` was computed under (see :func:`.budgets.config_key`)."""
@@ -208,6 +214,22 @@ class TableRun:
         train_id = row_env(self.env, "train")
         assert train_id is not None
         return zoo_hyperparameters(train_id)
+
+    def _dagger(self, method: Method) -> dict[str, Any]:
+        """The :class:`~sb3_taskalloc.SelectDAggerCallback` keywords a column trains with: the training env's zoo block's
+        (:func:`.budgets.zoo_dagger`) under :data:`.budgets.DAGGER_BUDGET`'s for this budget, for the TwoStageSAC
+        columns that pre-assign (the W/o Pre columns share one pool of entities, which DAgger cannot teach); ``{}``:
+        none."""
+        train_id = row_env(self.env, "train")
+        assert train_id is not None
+        zoo = zoo_dagger(train_id)
+        if (
+            not zoo
+            or method.kind != "sac"
+            or not {**self._zoo.get("policy_kwargs", {}), **method.kwargs}.get("preassign", True)
+        ):
+            return {}
+        return {**zoo, **DAGGER_BUDGET.get(self.budget_name, {})}
 
     def _sac_kwargs(self) -> dict[str, Any]:
         """TwoStageSAC keywords of every column and row: the training env's zoo block (on the presets too) under the
@@ -290,7 +312,13 @@ class TableRun:
         if saved is not None:
             return saved
         model = self._new_model(method, env_id, seed, self._log_path(name, seed, row))
-        model.learn(self.budget.steps(self.env, self.budget.train_episodes))
+        dagger = self._dagger(method)
+        callback = None
+        if dagger:  # the zoo's schedule: the training steps, then the DAgger of the pointer
+            from sb3_taskalloc import SelectDAggerCallback
+
+            callback = SelectDAggerCallback(**dagger)
+        model.learn(self.budget.steps(self.env, self.budget.train_episodes), callback=callback)
         self._save(model, path)
         return model
 

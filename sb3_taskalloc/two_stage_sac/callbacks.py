@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
+import gymnasium as gym
+from gymnasium.envs.registration import EnvSpec
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC, check_distill_select
@@ -30,8 +33,9 @@ class SelectDAggerCallback(BaseCallback):
               iterations: 8
               imitation: set
 
-    The rollouts run on a fresh env of the training env's id (one copy, so they do not disturb the training envs),
-    and the next ``learn`` call of the model resets its training envs before it collects again.
+    The rollouts run on a fresh env made from the training env's spec (its id, keywords and time limit, without its
+    wrappers; one copy, so they do not disturb the training envs), and the next ``learn`` call of the model resets its
+    training envs before it collects again.
 
     :param iterations: rollout-label-fit iterations
     :param episodes: episodes rolled out per iteration
@@ -75,8 +79,8 @@ class SelectDAggerCallback(BaseCallback):
         self.model.check_distillable()
         spec = self.training_env.get_attr("spec", indices=0)[0]
         if spec is None:
-            raise ValueError("SelectDAggerCallback needs a registered training env: its id makes the rollouts' env")
-        self.env_id: str = spec.id
+            raise ValueError("SelectDAggerCallback needs a registered training env: its spec makes the rollouts' env")
+        self.env_spec: EnvSpec = spec
 
     def _on_step(self) -> bool:
         return True
@@ -84,7 +88,9 @@ class SelectDAggerCallback(BaseCallback):
     def _on_training_end(self) -> None:
         assert isinstance(self.model, TwoStageSAC)
         seed = self.seed if self.seed is not None else None if self.model.seed is None else dagger_seed(self.model.seed)
-        self.history = self.model.distill_select(self.env_id, seed=seed, **self.kwargs)
+        # The spec's wrappers (a Monitor, say) are left out: its id, keywords and time limit make the env.
+        env = gym.make(dataclasses.replace(self.env_spec, additional_wrappers=()))
+        self.history = self.model.distill_select(env, seed=seed, **self.kwargs)
         for stats in self.history:
             for key, value in stats.items():
                 self.logger.record(f"dagger/{key}", value)
