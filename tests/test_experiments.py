@@ -22,6 +22,22 @@ from sb3_taskalloc.experiments.table import TableRun
 CELL = re.compile(r"^(-?\d+(\.\d+)?( ± \d+(\.\d+)?)?|n/a \((size|static|scratch)\))$")  # one seed: no spread
 
 
+def record_distill_select(monkeypatch: pytest.MonkeyPatch) -> list[tuple[Any, dict[str, Any]]]:
+    """Each call of ``TwoStageSAC.distill_select`` from here on, as (the rollouts' env, its keywords but the
+    per-iteration callback)."""
+    from sb3_taskalloc import TwoStageSAC
+
+    calls: list[tuple[Any, dict[str, Any]]] = []
+    real = TwoStageSAC.distill_select
+
+    def recorded(self: TwoStageSAC, env: Any, callback: Any = None, **kw: Any) -> Any:
+        calls.append((env, kw))
+        return real(self, env, callback=callback, **kw)
+
+    monkeypatch.setattr(TwoStageSAC, "distill_select", recorded)
+    return calls
+
+
 def run_smoke(args: tuple[str, str]) -> str:
     env, out = args
     os.environ["OMP_NUM_THREADS"] = "1"
@@ -215,7 +231,6 @@ def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monke
     """A zoo block's ``SelectDAggerCallback`` (:func:`.budgets.zoo_dagger`) is the learning experiment's DAgger phase
     unless ``select_dagger`` says otherwise: its iterations and loss become the run's, its other keywords reach
     ``distill_select`` and the seed's digest, the report's command writes them out, and 0 turns it off."""
-    from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments import learn
 
     zoo = {"iterations": 2, "episodes": 3, "epochs": 8, "learning_rate": 1e-3, "batch_size": 32, "imitation": "set"}
@@ -233,16 +248,9 @@ def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monke
     monkeypatch.setattr(learn, "zoo_dagger", lambda env_id: {})
     assert new_run(select_dagger=2, dagger_imitation="set").key != run.key  # the block's episodes count
     assert new_run().select_dagger == 0 and new_run().key == off.key
-    calls: list[dict] = []
-    real = TwoStageSAC.distill_select
-
-    def counted(self, env, callback, **kw):
-        calls.append(kw)
-        return real(self, env, callback=callback, **kw)
-
-    monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
+    calls = record_distill_select(monkeypatch)
     record = run.run_seed(0)
-    assert calls == [{"iterations": 2, "imitation": "set", "seed": learn.dagger_seed(0), "episodes": 3}]
+    assert [kw for _, kw in calls] == [{"iterations": 2, "imitation": "set", "seed": learn.dagger_seed(0), "episodes": 3}]
     assert len(record["dagger"]) == 2 and [p[0] for p in record["curve"][-2:]] == [9, 12]  # 3 one-step episodes each
 
 
@@ -250,7 +258,6 @@ def test_table_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):
     """A zoo block's ``SelectDAggerCallback`` runs after the training steps of the table's pre-assigning TwoStageSAC
     columns (W/o Pre shares one pool: none), under the budget's caps and on the budget's episodes, and enters the
     digests of those columns' cells and models only."""
-    from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments import table
 
     zoo = {"iterations": 4, "episodes": 10, "epochs": 8, "learning_rate": 1e-3, "batch_size": 32, "imitation": "set"}
@@ -260,17 +267,13 @@ def test_table_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):
         run = TableRun("RBF", 1, "smoke", tmp_path, methods=["Ours", "W/o Pre (sequence)"], progress=False)
         keys[bool(dagger)] = {name: run.cell_key(name, "train") for name in run.methods}
     assert keys[True]["Ours"] != keys[False]["Ours"] and keys[True]["W/o Pre (sequence)"] == keys[False]["W/o Pre (sequence)"]
-    calls: list[tuple] = []
-    real = TwoStageSAC.distill_select
-
-    def counted(self, env, **kw):
-        calls.append((env.spec.max_episode_steps, kw["iterations"], kw["episodes"], kw["epochs"], kw["imitation"]))
-        return real(self, env, **kw)
-
-    monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
+    calls = record_distill_select(monkeypatch)
     run.trained("Ours", 0)
     run.trained("W/o Pre (sequence)", 0)
-    assert calls == [(run.budget.max_episode_steps, 1, 1, 1, "set")]  # the smoke budget's caps over the block's
+    # The smoke budget's caps over the block's, on the budget's episodes.
+    ((env, kw),) = calls
+    assert env.spec.max_episode_steps == run.budget.max_episode_steps
+    assert (kw["iterations"], kw["episodes"], kw["epochs"], kw["imitation"]) == (1, 1, 1, "set")
 
 
 def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
@@ -743,7 +746,6 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     not trained again), the model before it is evaluated too, and its settings are part of the seed's digest."""
     import json
 
-    from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments import learn
     from sb3_taskalloc.experiments.__main__ import main
 
@@ -754,16 +756,9 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     assert dagger.key != plain.key
     base = plain.run_seed(0)
     monkeypatch.setattr(learn.LearnRun, "_train", lambda *a: pytest.fail("the finished run without DAgger was trained again"))
-    calls: list[dict] = []
-    real = TwoStageSAC.distill_select
-
-    def counted(self, env, callback, **kw):
-        calls.append(kw)
-        return real(self, env, callback=callback, **kw)
-
-    monkeypatch.setattr(TwoStageSAC, "distill_select", counted)
+    calls = record_distill_select(monkeypatch)
     text = dagger.run(progress=False).read_text()
-    assert calls == [{"iterations": 2, "imitation": "sequence", "seed": learn.dagger_seed(0)}]
+    assert [kw for _, kw in calls] == [{"iterations": 2, "imitation": "sequence", "seed": learn.dagger_seed(0)}]
     assert "| untrained | trained | before DAgger | only actor learned |" in text and "--select-dagger 2" in text
     (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
     assert record["before_dagger"] == base["trained"] and record["untrained"] == base["untrained"]
