@@ -13,9 +13,10 @@ from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC, check_distill
 
 
 def dagger_seed(seed: int) -> int:
-    """Reset seed of the DAgger rollouts of a model trained under ``seed``: the episodes run on from
-    ``50_000 + 1000·seed``, so the rollouts of different training seeds do not share episodes (up to 1,000 each) and
-    stay clear of the low reset seeds that training envs take from the same seed.
+    """Seed of the DAgger rollouts' env for a model trained under ``seed``: ``50_000 + 1000·seed``. The env's first reset
+    takes it (a VecEnv's copies take it, it + 1, ...) and later episodes follow the env's own stream, so the rollouts
+    of different training seeds start from different seeds (for up to 1,000 copies), none of them a seed the training
+    envs of the same seed start from.
 
     :param seed: the model's seed
     :return: the seed of the rollouts' env
