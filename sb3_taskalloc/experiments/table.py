@@ -220,9 +220,7 @@ class TableRun:
         (:func:`.budgets.zoo_dagger`) under :data:`.budgets.DAGGER_BUDGET`'s for this budget, for the TwoStageSAC
         columns that pre-assign (the W/o Pre columns share one pool of entities, which DAgger cannot teach); ``{}``:
         none."""
-        train_id = row_env(self.env, "train")
-        assert train_id is not None
-        zoo = zoo_dagger(train_id)
+        zoo = self._zoo_dagger
         if (
             not zoo
             or method.kind != "sac"
@@ -230,6 +228,13 @@ class TableRun:
         ):
             return {}
         return {**zoo, **DAGGER_BUDGET.get(self.budget_name, {})}
+
+    @cached_property
+    def _zoo_dagger(self) -> dict[str, Any]:
+        """The training env's zoo block's DAgger callback keywords (:func:`.budgets.zoo_dagger`), read once per run."""
+        train_id = row_env(self.env, "train")
+        assert train_id is not None
+        return zoo_dagger(train_id)
 
     def _sac_kwargs(self) -> dict[str, Any]:
         """TwoStageSAC keywords of every column and row: the training env's zoo block (on the presets too) under the
