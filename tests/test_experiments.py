@@ -768,6 +768,10 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     assert [p[0] for p in record["curve"][3:]] == [16, 26]
     assert record["best_step"] == base["best_step"] or record["best_step"] in (16, 26)
     assert record["train_seconds"] == pytest.approx(base["train_seconds"] + record["dagger_seconds"])
+    # The curve's evaluations are timed apart from training: DAgger's points add to the time of the steps' points.
+    assert 0 < base["curve_seconds"] < base["train_seconds"]
+    assert base["curve_seconds"] < record["curve_seconds"] < base["curve_seconds"] + record["dagger_seconds"]
+    assert "of which the curve's evaluations" in text
     assert learn.dagger_seed(0) > max(learn.validation_seeds(4, 100) + learn.eval_seeds(4, 100))
     # No training steps: DAgger alone, from the initial rule (the command line allows --steps 0 with --select-dagger).
     monkeypatch.undo()

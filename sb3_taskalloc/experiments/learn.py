@@ -227,13 +227,17 @@ class Curve(BaseCallback):
         self.points: list[tuple[int, float]] = []
         self.best: dict[str, Any] | None = None
         self.best_step = 0
+        #: Wall-clock seconds spent in the evaluations: the experiment's cost, not training's.
+        self.seconds = 0.0
 
     def _evaluate(self) -> None:
         self.evaluate_at(self.num_timesteps)
 
     def evaluate_at(self, step: int) -> None:
         """Add the point of ``step`` (training that goes on outside ``learn``, e.g. DAgger's rollouts, counts its own)."""
+        t0 = time.perf_counter()
         value = float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))
+        self.seconds += time.perf_counter() - t0
         if self.keep_best and step > 0 and value > max((v for t, v in self.points if t > 0), default=-np.inf):
             self.best = copy.deepcopy(self.model.policy.state_dict())
             self.best_step = step
@@ -394,6 +398,7 @@ class LearnRun:
         t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
+        record["curve_seconds"] = curve.seconds
         if self.device != "cpu":  # the evaluations decide one observation at a time, which is faster on the CPU
             buffer = io.BytesIO()
             model.save(buffer)
@@ -423,7 +428,7 @@ class LearnRun:
             steps[0] += int(stats["steps"])
             curve.evaluate_at(steps[0])
 
-        t0 = time.perf_counter()
+        t0, curve_t0 = time.perf_counter(), curve.seconds
         record["dagger"] = model.distill_select(
             self.env_id,
             iterations=self.iterations,
@@ -434,6 +439,8 @@ class LearnRun:
         )
         record["dagger_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["train_seconds"] += record["dagger_seconds"]
+        if "curve_seconds" in record:  # absent where the training before DAgger ran before the curve was timed
+            record["curve_seconds"] += curve.seconds - curve_t0
         if curve.best is not None:
             self._evaluate_best(model, curve, record, path)
 
@@ -456,7 +463,7 @@ class LearnRun:
             [(int(t), float(v)) for t, v in done["curve"]],
             done.get("best_step", 0),
         )
-        kept = ("seed", "eval_seeds", "untrained", "train_seconds", "best", "best_step")
+        kept = ("seed", "eval_seeds", "untrained", "train_seconds", "curve_seconds", "best", "best_step")
         return model, {k: done[k] for k in kept if k in done}, curve
 
     def _diagnose(self, model: Any, seed: int) -> dict[str, Any]:
@@ -673,6 +680,14 @@ class LearnRun:
             ),
             f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
         ]
+        if all("curve_seconds" in r for r in records):  # what a training without the experiment's curve takes
+            total = np.array([r["train_seconds"] for r in records])
+            curve = np.array([r["curve_seconds"] for r in records])
+            bare = total - curve
+            lines += [
+                f"- training time per seed: {total.min():.0f}–{total.max():.0f} s, of which the curve's evaluations "
+                f"{curve.min():.0f}–{curve.max():.0f} s: {bare.min():.0f}–{bare.max():.0f} s without them",
+            ]
         if "best" in means:  # the same targets for the checkpoint the validation episodes pick
             best = np.array(means["best"])
             lines += [
