@@ -14,7 +14,7 @@ from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.baselines import GreedyAllocator
-from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical
+from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, masked_pick, segment_pick
 from sb3_taskalloc.common.mixers import AMIXMixer
 from sb3_taskalloc.common.torch_layers import NEG, ObsView, parse_obs
 from sb3_taskalloc.common.utils import foreach_polyak_update
@@ -366,6 +366,39 @@ def test_segmented_categorical_equals_masked_categorical_over_tasks():
     th.testing.assert_close(full.kl(full_q), closed, atol=1e-5, rtol=1e-5)
     assert (full.kl(full_q) >= -1e-6).all() and full.kl(full_q).max() > 0.01
     th.testing.assert_close(seg_dist.kl(seg_dist), th.zeros_like(seg_dist.entropy()))
+
+
+def test_segment_pick_equals_masked_pick_over_tasks():
+    """The pointer's picks on (B, N) equal :func:`masked_pick` on the (B, M, N) layout it replaces, bit for bit: the argmax
+    with its first-index tie rule, and samples from the same seeded stream; a segment without an allowed entity gets
+    entity 0."""
+    th.manual_seed(0)
+    B, N, M = 6, 11, 4
+    seg = th.randint(0, M, (B, N))
+    allowed = th.rand(B, N) > 0.3
+    allowed[0] = False  # a row with no choice at all
+    scores = th.randint(-2, 3, (B, N)).float()  # ties within segments
+    full = (seg.unsqueeze(1) == th.arange(M).view(1, M, 1)) & allowed.unsqueeze(1)  # (B, M, N)
+    has = full.any(-1)
+    assert (~has).any() and has.any()
+    ties = 0
+    for deterministic in (True, False):
+        for seed in range(20):
+            got = segment_pick(scores, allowed, seg, M, deterministic, th.Generator().manual_seed(seed))
+            want = masked_pick(scores.unsqueeze(1).masked_fill(~full, NEG), deterministic, th.Generator().manual_seed(seed))
+            assert th.equal(got[has], want[has]) and (got[~has] == 0).all()
+            assert full.gather(-1, got.unsqueeze(-1)).squeeze(-1)[has].all()  # a pick is its segment's allowed entity
+        top = scores.unsqueeze(1).masked_fill(~full, NEG).max(-1, keepdim=True).values
+        ties += int((((scores.unsqueeze(1) == top) & full).sum(-1) > 1).sum())
+    assert ties > 0  # the tie rule was exercised
+    # the samples follow the softmax of each segment
+    counts = th.zeros(N)
+    g = th.Generator().manual_seed(1)
+    row, j = 1, int(seg[1, allowed[1]][0])
+    for _ in range(4000):
+        counts[segment_pick(scores, allowed, seg, M, False, g)[row, j]] += 1
+    members = full[row, j]
+    th.testing.assert_close(counts[members] / 4000, th.softmax(scores[row, members], 0), atol=0.03, rtol=0)
 
 
 def test_select_losses_match_sequential_decoding_on_many_tasks():

@@ -48,6 +48,43 @@ def masked_pick(masked_logits: th.Tensor, deterministic: bool, generator: th.Gen
     return th.argmax(masked_logits, dim=-1)
 
 
+def segment_pick(
+    scores: th.Tensor,
+    allowed: th.Tensor,
+    seg: th.Tensor,
+    n_seg: int,
+    deterministic: bool,
+    generator: th.Generator | None = None,
+) -> th.Tensor:
+    """:func:`masked_pick` of every segment at once, computed on (B, N) instead of (B, M, N): the same picks as
+    ``masked_pick(scores.unsqueeze(1).masked_fill(~mask, NEG), ...)`` where ``mask[b, j, i]`` is ``allowed[b, i]`` and
+    ``seg[b, i] == j``, for every segment with an allowed entity (a segment without one gets entity 0). The sample
+    draws the same (B, M, N) uniforms from ``generator`` and uses each entity's own segment's, so a seeded stream
+    gives the same picks too; only the Gumbel transform, the masking and the maximum shrink by M.
+
+    :param scores: (B, N) unmasked scores
+    :param allowed: (B, N) bool, entities that may be picked
+    :param seg: (B, N) segment of each entity in [0, n_seg) (masked entities may point anywhere)
+    :param n_seg: number of segments M
+    :param deterministic: the first maximum of each segment (else a Gumbel-max sample)
+    :param generator: the random stream of the sample (None: torch's global one)
+    :return: (B, M) the entity picked in each segment
+    """
+    B, N = scores.shape
+    if not deterministic:
+        u = th.rand((B, n_seg, N), generator=generator, dtype=scores.dtype, device=scores.device)
+        u = th.gather(u, 1, seg.unsqueeze(1)).squeeze(1).clamp_(1e-10, 1.0 - 1e-7)
+        scores = scores - th.log(-th.log(u))
+    scores = scores.masked_fill(~allowed, -th.inf)
+    best = scores.new_full((B, n_seg), -th.inf).scatter_reduce_(1, seg, scores, "amax")
+    # argmax's tie rule: the first index that reaches its segment's maximum.
+    at_best = allowed & (scores == th.gather(best, 1, seg))
+    index = th.arange(N, device=scores.device).expand(B, N)
+    first = th.full((B, n_seg), N, dtype=th.long, device=scores.device)
+    first.scatter_reduce_(1, seg, th.where(at_best, index, N), "amin")
+    return first.masked_fill_(first == N, 0)
+
+
 def segment_sum(x: th.Tensor, seg: th.Tensor, n_seg: int, vector: bool = False) -> th.Tensor:
     """Sum entity values into their segments (the task each entity is a candidate of).
 

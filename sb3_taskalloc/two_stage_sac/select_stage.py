@@ -15,10 +15,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch as th
-from torch import nn
 
-from sb3_taskalloc.common.distributions import MaskedCategorical, masked_pick, segment_sum
-from sb3_taskalloc.common.torch_layers import NEG, ObsView, PointerHead, symlog
+from sb3_taskalloc.common.distributions import MaskedCategorical, segment_pick, segment_sum
+from sb3_taskalloc.common.torch_layers import ObsView, PointerHead, symlog
 
 #: A task counts as covered (internally) when every remaining demand is at most this (the env's tolerance is larger).
 COVER_TOL = 1e-5
@@ -202,6 +201,11 @@ class SelectState:
         """(B, M, N) entities task j may pick now."""
         return self.seg & self.choosable.unsqueeze(1) & self.active.unsqueeze(-1)
 
+    def allowed(self) -> th.Tensor:
+        """(B, N) entities their task may pick now: :meth:`choice_mask` folded over the tasks (each entity is at most
+        one task's candidate)."""
+        return self.choosable & (self.task_of >= 0) & th.gather(self.active, 1, self.task_of.clamp_min(0))
+
     def advance(self, picks: th.Tensor, valid: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Apply one pick per task. :param picks: (B, M) entity index; :param valid: (B, M) rows that pick.
         :return: the :func:`transition`'s reward and done flags, both (B, M)."""
@@ -212,7 +216,9 @@ class SelectState:
         self.rem = th.where(valid.unsqueeze(-1), (self.rem - sup).clamp_min(0.0), self.rem)
         self.cost = self.cost + vf * pc
         self.npick = self.npick + vf
-        picked = (nn.functional.one_hot(picks, self.avail.shape[1]).bool() & valid.unsqueeze(-1)).any(1)
+        # The valid picks are distinct entities (each is one task's candidate); an invalid pick goes to a spare column.
+        B, N = self.avail.shape
+        picked = self.avail.new_zeros(B, N + 1).scatter_(1, th.where(valid, picks, N), True)[:, :N]
         self.avail = self.avail & ~picked
         self.useful = useful_supply(v, self.task_of, self.rem)
         self.choosable = choosable(v, self.task_of, self.avail, self.rem, self.useful)
@@ -244,12 +250,12 @@ def decode_round(
     :param generator: the random stream of sampled picks (None: torch's global one)
     """
     st = SelectState(view, task_of)
-    B, _, N = st.seg.shape
+    B, M, N = st.seg.shape
+    seg = task_of.clamp_min(0)
     d = None if head is None or uniform else head.embed_entities(view)
     for t in range(N):
         if not bool(st.active.any()):
             break
-        mask = st.choice_mask()
         if d is None:
             logits = th.zeros(B, N, device=task_of.device)
         else:
@@ -257,7 +263,7 @@ def decode_round(
             logits = head(d, task_state, dyn, task_of)  # type: ignore[misc]
             if not deterministic and temperature != 1.0:
                 logits = logits / temperature
-        picks = masked_pick(logits.unsqueeze(1).masked_fill(~mask, NEG), deterministic, generator)  # (B, M)
+        picks = segment_pick(logits, st.allowed(), seg, M, deterministic, generator)  # (B, M)
         valid = st.active.clone()
         old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
         st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
