@@ -115,6 +115,62 @@ def test_milp_node_limit_stops_the_search_by_work():
         assert milp.last is not None and (milp.last.status != 0) is stopped
 
 
+def one_task_instance(rng: np.random.Generator, n: int, k: int) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """A task and n candidates drawn from a few entity types (so identical candidates repeat), with decayed (non-integer)
+    demand, costs on a grid of base + distance steps and now and then a free (zero-cost) or paid (negative-cost) one."""
+    types = rng.integers(0, 9, (4, k)).astype(float)
+    supply = types[rng.integers(0, 4, n)]
+    cost = rng.choice([0.2, 0.3, 0.5], n) + 0.03 * rng.integers(0, 5, n)
+    cost[rng.random(n) < 0.05] = rng.choice([0.0, -0.1])
+    demand = rng.integers(1, 25, k) * 0.99 ** int(rng.integers(0, 8))
+    return supply, demand, float(rng.uniform(0.5, 6.0)), cost
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_cheapest_team_is_as_profitable_as_the_milp(seed):
+    """One task's branch and bound (:func:`max_profit_team` within its node limit) finds a team as profitable as HiGHS's
+    optimum of the same one-task MILP, and that team covers the demand; where no team pays it sends none. The
+    instances range from a single candidate to 60 with repeated types, one to three resources."""
+    from sb3_taskalloc.baselines.milp import cheapest_team, max_profit_cover
+
+    rng = np.random.default_rng(seed)
+    kept = 0
+    for _ in range(40):
+        supply, demand, reward, cost = one_task_instance(rng, int(rng.integers(1, 61)), int(rng.integers(1, 4)))
+        useful = np.minimum(supply, demand)
+        team = cheapest_team(cost, useful, demand, reward, node_limit=10**6)
+        assert team is not None and team.dtype == bool and team.shape == cost.shape
+        _, _, res = max_profit_cover(supply, demand[None], np.array([reward]), cost[:, None], time_limit=60.0)
+        assert res.status == 0
+        optimum = max(0.0, -float(res.fun))
+        if team.any():
+            assert (useful[team].sum(0) >= demand - 1e-6).all()
+            assert reward - cost[team].sum() == pytest.approx(optimum, abs=1e-6)
+            kept += 1
+        else:
+            assert optimum == pytest.approx(0.0, abs=1e-6)
+    assert 5 < kept < 40  # both outcomes occur
+
+
+def test_max_profit_team_hands_a_long_search_to_highs(monkeypatch):
+    """A search that reaches its node limit gives up (None) rather than return an unproven team, and
+    :func:`max_profit_team` then solves the task with HiGHS, with the caller's limits: the same profit either way."""
+    from sb3_taskalloc.baselines import milp
+
+    rng = np.random.default_rng(3)
+    supply, demand, reward, cost = one_task_instance(rng, 60, 3)
+    reward = 20.0  # every cover pays: the search must prove one the cheapest
+    assert milp.cheapest_team(cost, np.minimum(supply, demand), demand, reward, node_limit=1) is None
+    solve, calls = milp.max_profit_cover, []
+    monkeypatch.setattr(milp, "max_profit_cover", lambda *a, **k: calls.append(k) or solve(*a, **k))
+    quick = milp.max_profit_team(supply, demand, reward, cost)
+    assert not calls
+    slow = milp.max_profit_team(supply, demand, reward, cost, time_limit=50.0, node_limit=7, team_node_limit=1)
+    assert calls == [{"time_limit": 50.0, "node_limit": 7}]
+    assert quick.any() and slow.any()
+    assert cost[quick].sum() == pytest.approx(cost[slow].sum(), abs=1e-6)
+
+
 def test_highs_stdout_is_silenced_only_during_the_solve(capfd):
     # HiGHS writes its stray MIP message to descriptor 1 from C, as os.write does here.
     from sb3_taskalloc.baselines.milp import _highs_stdout_silenced

@@ -21,6 +21,7 @@ from sb3_taskalloc.experiments import bench
         ("policy", {"device", "entities", "tasks", "predict_ms"}),
         ("train", {"device", "env", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
         ("learn", {"device", "seed", "untrained", "target_return", "reached", "last_return", "training_s", "curve"}),
+        ("labels", {"labeller", "rounds", "tasks", "ms_per_round", "seconds"}),
     ],
 )
 def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
@@ -60,6 +61,11 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
             assert n == 8 and steps == [-(-100 // n) * n, 200][: len(steps)] and row["env_steps"] == steps[-1]
             assert row["reached"] == (row["last_return"] >= row["target_return"]) == (row["seconds_to_target"] is not None)
             assert row["curve"][-1][1] == row["training_s"] > 0
+    if which == "labels":  # the two labellers on the same rounds: both exact, so equally profitable
+        assert [row["labeller"] for row in rows] == ["task by task (branch and bound)", "one HiGHS solve per round"]
+        assert rows[0]["rounds"] == rows[1]["rounds"] > 0 and rows[0]["tasks"] >= rows[0]["rounds"]
+        assert rows[0]["max_profit_difference"] < 1e-4
+        assert rows[0]["speedup"] == pytest.approx(rows[1]["seconds"] / rows[0]["seconds"])
     assert f"## {which}" in capsys.readouterr().out  # the printed table
 
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.optimize import Bounds, LinearConstraint, milp
+from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from scipy.sparse import coo_matrix, hstack
 
 from sb3_taskalloc.baselines.base import Allocator
@@ -122,6 +122,183 @@ def max_profit_cover(
         chosen = np.round(res.x[:P]).astype(bool) & y[tasks]
         x[ents[chosen], tasks[chosen]] = True
     return x, y, res
+
+
+# Nodes of :func:`cheapest_team`'s search before :func:`max_profit_team` hands a task to HiGHS: on the DAgger labels of
+# trained RBF, MT and EPT models all tasks but about one in 600 finish within it (README, "Exact teams by branch and bound").
+TEAM_NODE_LIMIT = 5000
+
+
+def cheapest_team(
+    cost: np.ndarray, useful: np.ndarray, demand: np.ndarray, budget: float, node_limit: int = TEAM_NODE_LIMIT
+) -> np.ndarray | None:
+    """The cheapest team that covers one task, among teams cheaper than ``budget``, by depth-first branch and bound:
+
+    minimise Σ_i c_i x_i  subject to  Σ_i u_ik x_i ≥ d_k for every resource k, x binary, Σ_i c_i x_i < budget.
+
+    Entities with c_i ≤ 0 join any team (they lower its cost). The others are grouped by identical (c_i, u_i) and the
+    search branches on how many of a group join, most first, in the order of their reduced costs c_i − λ·u_i under the
+    duals λ of the LP relaxation. A node is cut by the Lagrangian bound λ·r + Σ min(0, c − λ·u) over the groups not yet
+    decided (r: the demand still uncovered), by r_k times the lowest cost per unit of resource k among them, or when
+    they cannot cover r. The result is exact; of equally cheap teams the first found is kept.
+
+    :param cost: (n,) the entities' costs for the task
+    :param useful: (n, K) what each entity contributes to each resource, min(supply, demand) in the MILP's formulation
+    :param demand: (K,) the task's demand
+    :param budget: only teams strictly cheaper than this count (the task's reward: a team worth keeping)
+    :param node_limit: search nodes before giving up
+    :return: (n,) bool the team, an all-False mask where no team is cheaper than ``budget``, or None where the search
+        reached ``node_limit`` first
+    """
+    n = len(cost)
+    team = cost <= 0
+    deficit = demand - useful[team].sum(0)
+    spent0 = float(cost[team].sum())
+    tol = 1e-9 * np.maximum(1.0, demand)  # float sums of decayed demands: a cover short by rounding alone is a cover
+    need = deficit > tol
+    if not need.any():
+        return team if spent0 < budget else np.zeros(n, bool)
+    r0, eps = deficit[need], tol[need]
+    u = np.minimum(useful[:, need], r0)  # more of a resource than is missing is worth nothing
+    cand = np.flatnonzero(~team & (u > 0).any(1))
+    if len(cand) == 0 or (u[cand].sum(0) < r0 - eps).any():
+        return np.zeros(n, bool)
+    keys, inverse, counts = np.unique(np.column_stack([cost[cand], u[cand]]), axis=0, return_inverse=True, return_counts=True)
+    c, ug = keys[:, 0], keys[:, 1:]
+    r0 = r0 - eps  # the search covers r0 − eps, so that its bounds hold for the teams it accepts
+    lp = linprog(c, A_ub=-ug.T, b_ub=-r0, bounds=np.column_stack([np.zeros(len(c)), counts]), method="highs")
+    if lp.status != 0 or spent0 + lp.fun >= budget:  # the LP bounds every team's cost from below
+        return np.zeros(n, bool)
+    lam = np.maximum(-lp.ineqlin.marginals, 0.0)
+    rc = c - ug @ lam
+    order = np.lexsort((c, rc))  # the branching order: by reduced cost, then cost
+    found = _TeamSearch(c[order], ug[order], counts[order], rc[order], lam, node_limit).run(r0, budget - spent0)
+    if found is None:
+        return None
+    if found:
+        wanted = np.zeros(len(c), np.int64)
+        wanted[order] = found  # per group of ``keys``
+        for pos, i in enumerate(cand):  # each group's count from its lowest-index entities
+            g = inverse.flat[pos]
+            if wanted[g] > 0:
+                team[i] = True
+                wanted[g] -= 1
+        return team
+    return np.zeros(n, bool)
+
+
+class _TeamSearch:
+    """:func:`cheapest_team`'s depth-first search over the groups, in their branching order, with plain Python floats
+    (K is a handful: numpy's per-call cost would dominate a node)."""
+
+    def __init__(
+        self,
+        cost: np.ndarray,
+        useful: np.ndarray,
+        counts: np.ndarray,
+        reduced: np.ndarray,
+        lam: np.ndarray,
+        node_limit: int,
+    ) -> None:
+        G, K = useful.shape
+        # Lagrangian bound over groups g.. : Σ min(0, c − λ·u) × count
+        self.neg = np.append(np.cumsum((np.minimum(reduced, 0.0) * counts)[::-1])[::-1], 0.0).tolist()
+        with np.errstate(divide="ignore"):
+            per_unit = np.where(useful > 0, cost[:, None] / np.where(useful > 0, useful, 1.0), np.inf)
+        self.low_per_unit = np.vstack([np.minimum.accumulate(per_unit[::-1], 0)[::-1], np.full((1, K), np.inf)]).tolist()
+        self.supply_left = np.vstack([np.cumsum((useful * counts[:, None])[::-1], 0)[::-1], np.zeros((1, K))]).tolist()
+        self.cost, self.useful, self.counts = cost.tolist(), useful.tolist(), counts.tolist()
+        self.c_np, self.u_np, self.n_np, self.lam_np = cost, useful, counts, lam
+        self.lam, self.ks, self.G = lam.tolist(), range(K), G
+        self.node_limit, self.nodes = node_limit, 0
+        self.take = [0] * G
+        self.best_cost, self.best_take = 0.0, list[int]()
+
+    def _dual_bound(self, g: int, r: list[float], start: np.ndarray) -> tuple[float, np.ndarray]:
+        """A Lagrangian bound of groups g.. with ``r`` uncovered, λ·r + Σ n_h min(0, c_h − λ·u_h) with u capped at r (any
+        λ ≥ 0 gives one), λ improved from the parent's by one exact line search along each λ_k: :return: it and λ"""
+        rr = np.asarray(r)
+        u = np.minimum(self.u_np[g:], rr)
+        c, n = self.c_np[g:], self.n_np[g:]
+        lam = start.copy()
+        for k in self.ks:
+            pos = u[:, k] > 0
+            if not pos.any():
+                continue
+            # Along λ_k the bound's slope is r_k − Σ n_h u_hk over the groups past their breakpoint, where c_h − λ·u_h
+            # turns negative: its maximum is the first breakpoint at which those groups supply r_k.
+            brk = (c - u @ lam + u[:, k] * lam[k])[pos] / u[pos, k]
+            srt = np.argsort(brk)
+            j = int(np.searchsorted(np.cumsum((n[pos] * u[pos, k])[srt]), rr[k]))
+            if j < len(srt):  # else the groups cannot supply r_k, a node the caller has cut
+                lam[k] = max(float(brk[srt[j]]), 0.0)
+        return float(lam @ rr + (np.minimum(0.0, c - u @ lam) * n).sum()), lam
+
+    def run(self, r0: np.ndarray, budget: float) -> list[int] | None:
+        """:return: the count taken of each group (empty: no team cheaper than ``budget``), None at the node limit"""
+        self.best_cost, self.best_take = budget, []
+        return self.best_take if self._search(0, r0.tolist(), 0.0, self.lam_np) else None
+
+    def _search(self, g: int, r: list[float], spent: float, lam: np.ndarray) -> bool:
+        """Branch on group ``g`` with ``r`` still uncovered; False once the node limit is reached."""
+        self.nodes += 1
+        if self.nodes > self.node_limit:
+            return False
+        if g == self.G:
+            return True
+        ks = self.ks
+        bound = self.neg[g] + sum(self.lam[k] * r[k] for k in ks)
+        for k in ks:
+            if r[k] > 0:
+                if self.supply_left[g][k] < r[k]:
+                    return True
+                bound = max(bound, r[k] * self.low_per_unit[g][k])
+        if spent + bound >= self.best_cost:
+            return True
+        dual, lam = self._dual_bound(g, r, lam)
+        if spent + dual >= self.best_cost:
+            return True
+        cg, ug = self.cost[g], self.useful[g]
+        most = max((-int(-r[k] // ug[k]) for k in ks if r[k] > 0 and ug[k] > 0), default=0)  # more copies add only cost
+        for t in range(min(most, self.counts[g]), -1, -1):
+            s = spent + t * cg
+            if s >= self.best_cost:
+                continue
+            left = [max(r[k] - t * ug[k], 0.0) for k in ks]
+            self.take[g] = t
+            if not any(left):
+                self.best_cost, self.best_take = s, self.take[: g + 1] + [0] * (self.G - g - 1)
+            elif not self._search(g + 1, left, s, lam):
+                return False
+        self.take[g] = 0
+        return True
+
+
+def max_profit_team(
+    supply: np.ndarray,
+    demand: np.ndarray,
+    reward: float,
+    cost: np.ndarray,
+    time_limit: float = 10.0,
+    node_limit: int | None = None,
+    team_node_limit: int = TEAM_NODE_LIMIT,
+) -> np.ndarray:
+    """The most profitable team of one task, :func:`max_profit_cover` with one task: :func:`cheapest_team` within
+    ``team_node_limit`` nodes, else HiGHS with ``time_limit`` and ``node_limit``.
+
+    :param supply: (n, K) supplies of the candidates
+    :param demand: (K,) the task's demand
+    :param reward: the task's reward
+    :param cost: (n,) the candidates' costs for the task
+    :return: (n,) bool the team (all False: no team pays)
+    """
+    team = cheapest_team(cost, np.minimum(supply, demand), demand, reward, team_node_limit)
+    if team is not None:
+        return team
+    x, _, _ = max_profit_cover(
+        supply, demand[None], np.array([reward]), cost[:, None], time_limit=time_limit, node_limit=node_limit
+    )
+    return x[:, 0]
 
 
 class MILPAllocator(Allocator):

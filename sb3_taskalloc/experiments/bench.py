@@ -168,6 +168,22 @@ SEARCH_ROWS: tuple[tuple[dict[str, Any], str], ...] = (
 )
 
 
+def _rbf_model(args: argparse.Namespace) -> tuple[Any, str]:
+    """The trained model of the policy and labels benchmarks: ``--model``, or TwoStageSAC trained here on RBF for
+    ``--train-steps`` at the defaults. :return: it and its source, in words"""
+    import gymnasium as gym
+
+    import envs  # noqa: F401
+    from sb3_taskalloc import TwoStageSAC
+
+    if args.model:
+        return TwoStageSAC.load(args.model, device="cpu"), args.model
+    steps = args.train_steps or (100 if args.quick else 3000)
+    model = TwoStageSAC("TAMPolicy", gym.make("TaskAlloc/RBF-v0"), seed=0, device="cpu")
+    model.learn(steps)
+    return model, f"trained here, {steps} steps at the defaults"
+
+
 def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[dict[str, Any]]:
     """Decision latency over the states of seeded RBF episodes (median and p90) of a trained model (``--model``, or
     TwoStageSAC trained here for ``--train-steps`` at the defaults) and of the same policy untrained, with Greedy for
@@ -175,20 +191,12 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
     import gymnasium as gym
     import torch as th
 
-    import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.baselines import GreedyAllocator
 
     env_id = "TaskAlloc/RBF-v0"
     seeds = [30_000] if args.quick else [30_000, 30_001, 30_002]
-    if args.model:
-        trained = TwoStageSAC.load(args.model, device="cpu")
-        source = args.model
-    else:
-        steps = args.train_steps or (100 if args.quick else 3000)
-        trained = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
-        trained.learn(steps)
-        source = f"trained here, {steps} steps at the defaults"
+    trained, source = _rbf_model(args)
     th.manual_seed(0)
     untrained = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
     states = _episode_states(trained, env_id, seeds)
@@ -213,6 +221,44 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
     ms = _state_latencies_ms(GreedyAllocator(), states)
     rows.append({"device": "cpu", "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
                  "p90_ms": float(np.percentile(ms, 90))})  # fmt: skip
+    return rows
+
+
+def bench_labels(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The exact covers that label the pointer's DAgger (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`): every
+    pre-assign round of seeded RBF episodes of a trained model's deterministic policy (``--model``), covered task by
+    task (branch and bound, :func:`~sb3_taskalloc.baselines.milp.max_profit_team`) and by one HiGHS solve per round
+    (the per-step MILP's formulation on the candidate pairs): seconds per round of each, and the largest difference
+    between the two covers' profits (both exact: 0 up to the solvers' tolerances)."""
+    import torch as th
+
+    from sb3_taskalloc.two_stage_sac.select_stage import exact_covers
+
+    model, source = _rbf_model(args)
+    policy = model.policy
+    rounds: list[tuple[Any, th.Tensor]] = []
+    for obs in _episode_states(model, "TaskAlloc/RBF-v0", [30_000] if args.quick else [30_000, 30_001, 30_002]):
+        with th.inference_mode():
+            policy.decide(policy.parse(policy.obs_to_tensor(obs)[0]), deterministic=True, rounds_out=rounds)
+    M = rounds[0][0].task_mask.shape[1]
+    tasks = sum(int((t.unsqueeze(-1) == th.arange(M)).any(1).sum()) for _, t in rounds)
+    rows: list[dict[str, Any]] = []
+    profits = []
+    for by_task, name in ((True, "task by task (branch and bound)"), (False, "one HiGHS solve per round")):
+        seconds, profit = 0.0, []
+        for view, task_of in rounds:
+            allowed = task_of.unsqueeze(-1) == th.arange(M)
+            t0 = time.perf_counter()
+            members = exact_covers(view, allowed, by_task=by_task)
+            seconds += time.perf_counter() - t0
+            team = (members.unsqueeze(-1) == th.arange(M)).double()  # (B, N, M)
+            kept = team.any(1)
+            profit.append((view.reward.double() * kept - (view.pair_cost.double() * team).sum(1)).sum(-1))
+        profits.append(th.cat(profit))
+        rows.append({"labeller": name, "rounds": len(rounds), "tasks": tasks,
+                     "ms_per_round": seconds / len(rounds) * 1e3, "seconds": seconds, "model": source})  # fmt: skip
+    rows[0]["speedup"] = rows[1]["seconds"] / rows[0]["seconds"]
+    rows[0]["max_profit_difference"] = float((profits[0] - profits[1]).abs().max())
     return rows
 
 
@@ -527,6 +573,7 @@ BENCHES: dict[str, BenchFn] = {
     "train": bench_train,
     "baselines": bench_baselines,
     "learn": bench_learn,
+    "labels": bench_labels,
 }
 
 
@@ -560,12 +607,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
     parser.add_argument("--out", default="bench_out", help="folder for the JSON results")
     parser.add_argument("--quick", action="store_true", help="shorter timings (smoke runs)")
-    parser.add_argument("--model", default=None, help="policy benchmark: a trained TwoStageSAC for the episode states")
+    parser.add_argument(
+        "--model", default=None, help="policy and labels benchmarks: a trained TwoStageSAC for the episode states"
+    )
     parser.add_argument(
         "--train-steps",
         type=int,
         default=None,
-        help="policy benchmark without --model: steps to train one first (default 3,000; 100 with --quick)",
+        help="policy and labels benchmarks without --model: steps to train one first (default 3,000; 100 with --quick)",
     )
     parser.add_argument("--seeds", type=int, default=1, help="learn benchmark: training seeds 0 .. seeds - 1")
     parser.add_argument("--learn-steps", type=int, default=48_000, help="learn benchmark: env steps at most per seed")

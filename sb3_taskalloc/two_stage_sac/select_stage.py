@@ -331,26 +331,40 @@ EXACT_TIME_LIMIT = 30.0
 
 
 def exact_covers(
-    view: ObsView, allowed: th.Tensor, node_limit: int = EXACT_NODE_LIMIT, time_limit: float = EXACT_TIME_LIMIT
+    view: ObsView,
+    allowed: th.Tensor,
+    node_limit: int = EXACT_NODE_LIMIT,
+    time_limit: float = EXACT_TIME_LIMIT,
+    by_task: bool = True,
 ) -> th.Tensor:
     """(B, N) the task each entity serves in the exact most profitable cover of the ``allowed`` pairs (−1: none):
     :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone, one
-    HiGHS solve per batch row on the CPU.
+    HiGHS solve per batch row on the CPU. Where each entity may serve one task at most (the candidates of a
+    pre-assignment) the problem separates by task, and each task's team is
+    :func:`~sb3_taskalloc.baselines.milp.max_profit_team`'s (branch and bound, HiGHS where it runs long).
 
     :param allowed: (B, N, M) bool pairs that may be assigned
-    :param node_limit: HiGHS node limit per batch row; the best cover found is used when it is reached (a deterministic
-        stop: the cover is the same on any machine)
-    :param time_limit: HiGHS time limit per batch row (seconds), a safety net: where it binds, the cover depends on the
+    :param node_limit: HiGHS node limit per solve (a batch row, or a task whose branch and bound ran long); the best
+        cover found is used when it is reached (a deterministic stop: the cover is the same on any machine)
+    :param time_limit: HiGHS time limit per solve (seconds), a safety net: where it binds, the cover depends on the
         machine's speed and load
+    :param by_task: solve task by task where the pairs separate (False: one HiGHS solve per batch row always, the
+        reference the benchmark ``python -m sb3_taskalloc.bench labels`` times it against)
     """
     import numpy as np
 
-    from sb3_taskalloc.baselines.milp import max_profit_cover
+    from sb3_taskalloc.baselines.milp import max_profit_cover, max_profit_team
 
     tensors = (view.supply, view.demand, view.reward, view.pair_cost)
     supply, demand, reward, cost = (x.detach().double().cpu().numpy() for x in tensors)
     pairs = allowed.cpu().numpy()
     members = np.full(pairs.shape[:2], -1, dtype=np.int64)
+    if by_task and (pairs.sum(-1) <= 1).all():
+        for b, j in zip(*np.nonzero(pairs.any(1)), strict=True):
+            ents = np.flatnonzero(pairs[b, :, j])
+            team = max_profit_team(supply[b, ents], demand[b, j], reward[b, j], cost[b, ents, j], time_limit, node_limit)
+            members[b, ents[team]] = j
+        return th.as_tensor(members, device=allowed.device)
     for b in range(pairs.shape[0]):
         ents, tasks = np.flatnonzero(pairs[b].any(1)), np.flatnonzero(pairs[b].any(0))
         if len(ents) == 0:
