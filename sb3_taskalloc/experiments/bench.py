@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m sb3_taskalloc.bench {envs,policy,train,baselines,learn,all} [--out DIR]``.
+"""Benchmarks: ``python -m sb3_taskalloc.bench {envs,policy,train,baselines,learn,labels,all} [--out DIR]``.
 
 Each benchmark prints a table and writes ``<out>/bench_<name>.json`` with the figures, the machine and the command.
 Figures are measured with one thread (``OMP_NUM_THREADS=1``, ``torch.set_num_threads(1)``) unless stated.
