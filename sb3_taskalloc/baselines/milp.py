@@ -148,7 +148,7 @@ def cheapest_team(
     :param budget: only teams strictly cheaper than this count (the task's reward: a team worth keeping)
     :param node_limit: search nodes before giving up
     :return: (n,) bool the team, an all-False mask where no team is cheaper than ``budget``, or None where the search
-        reached ``node_limit`` first
+        reached ``node_limit`` first (or the LP relaxation failed numerically)
     """
     n = len(cost)
     team = cost <= 0
@@ -167,8 +167,10 @@ def cheapest_team(
     c, ug = keys[:, 0], keys[:, 1:]
     r0 = r0 - eps  # the search covers r0 − eps, so that its bounds hold for the teams it accepts
     lp = linprog(c, A_ub=-ug.T, b_ub=-r0, bounds=np.column_stack([np.zeros(len(c)), counts]), method="highs")
-    if lp.status != 0 or spent0 + lp.fun >= budget:  # the LP bounds every team's cost from below
+    if lp.status == 2 or (lp.status == 0 and spent0 + lp.fun >= budget):  # the LP bounds every team's cost from below
         return np.zeros(n, bool)
+    if lp.status != 0:  # a numerical failure of the LP: no bound to search with
+        return None
     lam = np.maximum(-lp.ineqlin.marginals, 0.0)
     rc = c - ug @ lam
     order = np.lexsort((c, rc))  # the branching order: by reduced cost, then cost
