@@ -154,7 +154,8 @@ def test_cheapest_team_is_as_profitable_as_the_milp(seed):
 
 def test_max_profit_team_hands_a_long_search_to_highs(monkeypatch):
     """A search that reaches its node limit gives up (None) rather than return an unproven team, and
-    :func:`max_profit_team` then solves the task with HiGHS, with the caller's limits: the same profit either way."""
+    :func:`max_profit_team` then solves the task with HiGHS, with the caller's limits: the same profit either way; so
+    does a task with more groups of identical candidates than the search recurses over."""
     from sb3_taskalloc.baselines import milp
 
     rng = np.random.default_rng(3)
@@ -169,6 +170,12 @@ def test_max_profit_team_hands_a_long_search_to_highs(monkeypatch):
     assert calls == [{"time_limit": 50.0, "node_limit": 7}]
     assert quick.any() and slow.any()
     assert cost[quick].sum() == pytest.approx(cost[slow].sum(), abs=1e-6)
+    # More groups of identical candidates than the search recurses over: HiGHS takes the task, no RecursionError.
+    n = milp.TEAM_MAX_GROUPS + 1
+    supply, cost = np.ones((n, 1)), 1.0 + np.arange(n) / n  # every candidate its own group
+    assert milp.cheapest_team(cost, supply, np.array([3.0]), 10.0) is None
+    team = milp.max_profit_team(supply, np.array([3.0]), 10.0, cost)
+    assert np.flatnonzero(team).tolist() == [0, 1, 2]  # the three cheapest cover the demand of 3
 
 
 def test_highs_stdout_is_silenced_only_during_the_solve(capfd):

@@ -127,6 +127,9 @@ def max_profit_cover(
 # Nodes of :func:`cheapest_team`'s search before :func:`max_profit_team` hands a task to HiGHS: on the DAgger labels of
 # trained RBF, MT and EPT models all tasks but about one in 600 finish within it (README, "Exact teams by branch and bound").
 TEAM_NODE_LIMIT = 5000
+# The search recurses once per group of identical candidates; a task with more groups goes to HiGHS (Python's recursion
+# limit is 1,000 frames, and such a task is far past what the node limit lets the search finish).
+TEAM_MAX_GROUPS = 500
 
 
 def cheapest_team(
@@ -148,7 +151,8 @@ def cheapest_team(
     :param budget: only teams strictly cheaper than this count (the task's reward: a team worth keeping)
     :param node_limit: search nodes before giving up
     :return: (n,) bool the team, an all-False mask where no team is cheaper than ``budget``, or None where the search
-        reached ``node_limit`` first (or the LP relaxation failed numerically)
+        reached ``node_limit`` first (or the LP relaxation failed numerically, or the candidates form more than
+        :data:`TEAM_MAX_GROUPS` groups)
     """
     n = len(cost)
     team = cost <= 0
@@ -164,6 +168,8 @@ def cheapest_team(
     if len(cand) == 0 or (u[cand].sum(0) < r0 - eps).any():
         return np.zeros(n, bool)
     keys, inverse, counts = np.unique(np.column_stack([cost[cand], u[cand]]), axis=0, return_inverse=True, return_counts=True)
+    if len(keys) > TEAM_MAX_GROUPS:
+        return None
     c, ug = keys[:, 0], keys[:, 1:]
     r0 = r0 - eps  # the search covers r0 − eps, so that its bounds hold for the teams it accepts
     lp = linprog(c, A_ub=-ug.T, b_ub=-r0, bounds=np.column_stack([np.zeros(len(c)), counts]), method="highs")
