@@ -81,8 +81,11 @@ FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
 #: them) and the same versions of the searches it ran (rows saved before these numbers existed count as version 1): a
 #: change to what a search decides that the fingerprint states may not show increases its number here. Version 2 of
 #: the exact searches stops each HiGHS solve at a node limit instead of at 1 s
-#: (:data:`~sb3_taskalloc.two_stage_sac.select_stage.EXACT_NODE_LIMIT`), which changes only the hard steps.
-SEARCH_RULES: dict[str, int] = {**dict.fromkeys(DECISION_SEARCHES, 1), "select_decision_exact": 2, "decision_exact_top": 2}
+#: (:data:`~sb3_taskalloc.two_stage_sac.select_stage.EXACT_NODE_LIMIT`), which changes only the hard steps. Version 3
+#: solves each task's team by branch and bound where the pairs separate (:func:`~sb3_taskalloc.baselines.milp.max_profit_team`:
+#: the exact covers, and the exact pre-assignment among each entity's top task), which may send another of equally
+#: profitable teams.
+SEARCH_RULES: dict[str, int] = {**dict.fromkeys(DECISION_SEARCHES, 1), "select_decision_exact": 3, "decision_exact_top": 3}
 
 
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
