@@ -338,6 +338,32 @@ def test_actor_warmup_trains_only_the_critics():
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_prior_coef=-0.5)
 
 
+def test_frozen_preassign_actor_keeps_its_rule():
+    m = TwoStageSAC(
+        "TAMPolicy",
+        "TaskAlloc/RBF-v0",
+        learning_starts=8,
+        batch_size=8,
+        seed=0,
+        train_preassign_actor=False,
+        policy_kwargs={"hidden_dim": 16},
+    )
+    m.learn(12)
+    before = {k: v.clone() for k, v in m.policy.state_dict().items()}
+    alpha = float(m.log_ent_coef.detach())  # type: ignore[union-attr]
+    m.train(gradient_steps=2, batch_size=8)
+    after = m.policy.state_dict()
+
+    def changed(prefix: str) -> bool:
+        return any(not th.equal(before[k], after[k]) for k in after if k.startswith(prefix))
+
+    assert changed("critic.") and changed("select_critic.") and changed("selector.")
+    assert not changed("actor.")
+    assert float(m.log_ent_coef.detach()) == alpha  # type: ignore[union-attr]
+    with pytest.raises(ValueError, match="train_preassign_actor"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor=False, search_coef=1.0)
+
+
 def test_segmented_categorical_equals_masked_categorical_over_tasks():
     th.manual_seed(0)
     T, B, N, M = 3, 4, 9, 3

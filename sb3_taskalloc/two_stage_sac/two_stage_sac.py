@@ -132,6 +132,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param actor_warmup: gradient steps during which only the critics learn: the pre-assign actor, the pointer and
         both temperatures keep their initial values (with ``heuristic_init``, the critics first learn the values of the
         cost-greedy rules before the actors follow them)
+    :param train_preassign_actor: whether the pre-assign actor and its temperature learn; ``False`` keeps them at their
+        initial values for the whole training (implementation detail 23) while the critics and the select stage learn
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ = the actor at initialisation (a
         frozen copy in the policy): learning departs from the initial rule only where the critics' values outweigh it
     :param select_prior_coef: the same weight β_s for the pointer (select stage)
@@ -209,6 +211,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         entropy_bonus: Literal["sum", "mean"] = "mean",
         warmup_exploration: Literal["uniform", "policy"] = "policy",
         actor_warmup: int = 0,
+        train_preassign_actor: bool = True,
         prior_coef: float = 0.1,
         select_prior_coef: float = 3.0,
         profit_coef: float = 0.0,
@@ -295,6 +298,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         if actor_warmup < 0:
             raise ValueError(f"actor_warmup must be >= 0 gradient steps, got {actor_warmup}")
         self.actor_warmup = actor_warmup
+        self.train_preassign_actor = train_preassign_actor
+        if not train_preassign_actor and (profit_coef > 0 or search_coef > 0):
+            raise ValueError(
+                f"profit_coef ({profit_coef}) and search_coef ({search_coef}) are terms of the pre-assign actor's loss: "
+                "they need train_preassign_actor=True"
+            )
         weights = {
             "prior_coef": prior_coef,
             "select_prior_coef": select_prior_coef,
@@ -555,6 +564,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             # During the critic warm-up (implementation detail 11) only the critics learn: the actors and the
             # temperatures keep their initial values.
             actors_learn = self._n_updates + gradient_step >= self.actor_warmup
+            preassign_learns = actors_learn and self.train_preassign_actor
 
             # Stage 1, pre-assignment (paper: Pre-assign Module, Algorithm 2).
             if self.actor is not None and self.critic is not None and self.critic_target is not None:
@@ -576,7 +586,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 )
                 logs["critic_loss"].append(critic.loss.item())
                 critic_loss = self._with_paired_term(critic, batch_size, n_pairs, logs)
-                if not actors_learn:
+                if not preassign_learns:
                     self._step(self.critic.optimizer, critic_loss)
                 else:
                     dist = self.actor(obs)
