@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -308,16 +309,15 @@ def test_gradient_step_changes_parameters(model):
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
 
 
-def test_actor_warmup_trains_only_the_critics():
-    m = TwoStageSAC(
-        "TAMPolicy",
-        "TaskAlloc/RBF-v0",
-        learning_starts=8,
-        batch_size=8,
-        seed=0,
-        actor_warmup=3,
-        policy_kwargs={"hidden_dim": 16},
+def _small_rbf_model(**kwargs: Any) -> TwoStageSAC:
+    """A narrow RBF model whose first gradient step comes after 8 env steps, for the tests of which parts learn."""
+    return TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=8, batch_size=8, seed=0, policy_kwargs={"hidden_dim": 16}, **kwargs
     )
+
+
+def test_actor_warmup_trains_only_the_critics():
+    m = _small_rbf_model(actor_warmup=3)
     m.learn(10)  # fills the buffer; 2 gradient steps, both within the warm-up
     before = {k: v.clone() for k, v in m.policy.state_dict().items()}
     alphas = [float(m.log_ent_coef.detach()), float(m.log_select_ent_coef.detach())]  # type: ignore[arg-type]
@@ -339,15 +339,7 @@ def test_actor_warmup_trains_only_the_critics():
 
 
 def test_frozen_preassign_actor_keeps_its_rule():
-    m = TwoStageSAC(
-        "TAMPolicy",
-        "TaskAlloc/RBF-v0",
-        learning_starts=8,
-        batch_size=8,
-        seed=0,
-        train_preassign_actor=False,
-        policy_kwargs={"hidden_dim": 16},
-    )
+    m = _small_rbf_model(train_preassign_actor=False)
     m.learn(12)
     before = {k: v.clone() for k, v in m.policy.state_dict().items()}
     alpha = float(m.log_ent_coef.detach())  # type: ignore[union-attr]
