@@ -98,8 +98,14 @@ def test_study_with_pruner_completes_and_summarizes(tmp_path):
     assert runner.count(load(tmp_path), runner.FINISHED) == 3 and len(load(tmp_path).trials) == 3
 
 
+def child_env() -> dict[str, str]:
+    """This process's environment for a worker: one thread, and this checkout ahead of any ``PYTHONPATH`` it already has."""
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": path}
+
+
 def spawn(tmp_path: Path, n_trials: int, n_timesteps: int = 40) -> subprocess.Popen:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    env = child_env()
     return subprocess.Popen(
         [sys.executable, "-m", "tuning.study", *worker_args(tmp_path, n_trials, n_timesteps)],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -184,7 +190,7 @@ def postgres_url():
 
 
 def test_two_workers_share_a_postgresql_study(tmp_path, postgres_url):
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    env = child_env()
     args = [a if a != str(tmp_path / "s.log") else postgres_url for a in worker_args(tmp_path, 4)]
     workers = [
         subprocess.Popen([sys.executable, "-m", "tuning.study", *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,

@@ -22,7 +22,9 @@ CONFIGS = ROOT / "zoo_configs"
 
 
 def zoo(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    # This checkout goes ahead of any PYTHONPATH the test process has, which stays: it may hold the dependencies.
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": path}
     proc = subprocess.run(
         [sys.executable, "-m", "sb3_taskalloc.zoo", *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
     )
