@@ -20,6 +20,7 @@ from sb3_taskalloc.common.mixers import AMIXMixer
 from sb3_taskalloc.common.torch_layers import NEG, ObsView, parse_obs
 from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac import losses
+from sb3_taskalloc.two_stage_sac.policies import starts_at_rule
 from sb3_taskalloc.two_stage_sac.select_stage import SelectState, cover_search, select_search, teacher_forced
 
 
@@ -354,6 +355,26 @@ def test_frozen_preassign_actor_keeps_its_rule():
     assert float(m.log_ent_coef.detach()) == alpha  # type: ignore[union-attr]
     with pytest.raises(ValueError, match="train_preassign_actor"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor=False, search_coef=1.0)
+
+
+@pytest.mark.parametrize(
+    "policy_kwargs, rule",
+    [({}, True), ({"heuristic_init": False}, False), ({"encoder": "mlp"}, False), ({"pair_features": False}, False)],
+)
+def test_only_an_actor_that_starts_at_the_rule_can_be_held(policy_kwargs, rule):
+    """Holding a pre-assign actor that starts at random weights would leave it random: it is refused by name; a policy
+    without a pre-assign actor (W/o Pre) has nothing to hold."""
+    small = {"hidden_dim": 16, **policy_kwargs}
+    assert starts_at_rule(small) is rule
+    assert TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=small).policy.preassign_rule is rule
+    if rule:
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor=False, policy_kwargs=small)
+    else:
+        with pytest.raises(ValueError, match=r"starts at random ones .* set train_preassign_actor=True"):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor=False, policy_kwargs=small)
+    no_pre = {**small, "preassign": False}
+    assert not starts_at_rule(no_pre)
+    assert TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor=False, policy_kwargs=no_pre).actor is None
 
 
 def test_segmented_categorical_equals_masked_categorical_over_tasks():

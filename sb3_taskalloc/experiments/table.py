@@ -268,6 +268,7 @@ class TableRun:
         from stable_baselines3.common.vec_env import DummyVecEnv
 
         from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc.two_stage_sac.policies import starts_at_rule
 
         log.parent.mkdir(parents=True, exist_ok=True)
         if method.kind == "ppo":
@@ -281,6 +282,9 @@ class TableRun:
         if not policy_kwargs.get("preassign", True):
             # W/o Pre decodes the tasks from one shared pool: their teams cannot be searched one task at a time (detail 18).
             kwargs.pop("select_search_coef", None)
+        if not starts_at_rule(policy_kwargs):
+            # An actor that starts at random weights (W/o TAM) learns even where the block holds the rule's (detail 23).
+            kwargs.pop("train_preassign_actor", None)
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 
     def _load(self, method: Method, path: Path, env_id: str | None = None, log: Path | None = None) -> Any:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import inspect
 import math
 from collections.abc import Callable
 from typing import Any, Literal
@@ -59,6 +60,17 @@ OBS_KEYS = (
     "entity_mask",
     "task_mask",
 )
+
+
+def starts_at_rule(policy_kwargs: dict[str, Any]) -> bool:
+    """Whether ``TAMPolicy(**policy_kwargs)``'s pre-assign actor starts at the cost-greedy rule (:data:`HEURISTIC_INIT`):
+    with ``heuristic_init``, pre-assignment and the TAM encoder's pair read-out; otherwise it starts at random weights
+    (the paper's configuration, the "W/o TAM" ablation) or there is no pre-assign actor ("W/o Pre").
+
+    :param policy_kwargs: TAMPolicy keywords; those left out take TAMPolicy's defaults
+    """
+    kwargs = {**_RULE_DEFAULTS, **{k: v for k, v in policy_kwargs.items() if k in _RULE_DEFAULTS}}
+    return bool(kwargs["heuristic_init"] and kwargs["preassign"] and kwargs["encoder"] == "tam" and kwargs["pair_features"])
 
 
 class TAMPolicy(BasePolicy):
@@ -226,9 +238,12 @@ class TAMPolicy(BasePolicy):
         self.monotonic_mixer = monotonic_mixer
         self.hyper_bias = hyper_bias
         self.team_value = team_value
-        if logit_scale is None:  # only a pre-assign actor with the pair read-out starts at a rule (_init_heuristic)
-            ruled = heuristic_init and preassign and encoder == "tam" and pair_features
-            logit_scale = RULE_LOGIT_SCALES[0] if ruled else 1.0
+        #: Whether the pre-assign actor starts at the cost-greedy rule (_init_heuristic) rather than at random weights.
+        self.preassign_rule = starts_at_rule(
+            dict(heuristic_init=heuristic_init, preassign=preassign, encoder=encoder, pair_features=pair_features)
+        )
+        if logit_scale is None:
+            logit_scale = RULE_LOGIT_SCALES[0] if self.preassign_rule else 1.0
         if select_logit_scale is None:
             select_logit_scale = RULE_LOGIT_SCALES[1] if heuristic_init else 1.0
         scales = {"logit_scale": logit_scale, "select_logit_scale": select_logit_scale}
@@ -666,3 +681,11 @@ def check_spaces(observation_space: spaces.Space, action_space: spaces.Space) ->
         raise ValueError(
             f"TAMPolicy needs MultiDiscrete([{M + 1}] * {N}) actions (M + 1 choices per entity), got {action_space}"
         )
+
+
+#: TAMPolicy's defaults of the keywords that decide whether its pre-assign actor starts at a rule (:func:`starts_at_rule`).
+_RULE_DEFAULTS: dict[str, Any] = {
+    name: parameter.default
+    for name, parameter in inspect.signature(TAMPolicy.__init__).parameters.items()
+    if name in ("heuristic_init", "preassign", "encoder", "pair_features")
+}

@@ -68,6 +68,7 @@ PAPER_KWARGS: dict[str, Any] = {
     "warmup_exploration": "uniform",
     "prior_coef": 0.0,
     "select_prior_coef": 0.0,
+    "train_preassign_actor": True,
     "policy_kwargs": {"heuristic_init": False, "team_value": False},
 }
 
@@ -133,7 +134,9 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         both temperatures keep their initial values (with ``heuristic_init``, the critics first learn the values of the
         cost-greedy rules before the actors follow them)
     :param train_preassign_actor: whether the pre-assign actor and its temperature learn; ``False`` keeps them at their
-        initial values for the whole training (implementation detail 23) while the critics and the select stage learn
+        initial values for the whole training (implementation detail 23) while the critics and the select stage learn.
+        ``False`` needs an actor that starts at the rule (:func:`~sb3_taskalloc.two_stage_sac.policies.starts_at_rule`)
+        or a policy without one ("W/o Pre"): a random actor held at its start would never pre-assign by anything
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ = the actor at initialisation (a
         frozen copy in the policy): learning departs from the initial rule only where the critics' values outweigh it
     :param select_prior_coef: the same weight β_s for the pointer (select stage)
@@ -368,6 +371,12 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             raise ValueError(
                 "select_search_coef needs a pre-assigning policy: without pre-assignment (W/o Pre) the tasks pick from one "
                 "shared pool, so their teams cannot be searched independently; set select_search_coef=0"
+            )
+        if not self.train_preassign_actor and self.actor is not None and not self.policy.preassign_rule:
+            raise ValueError(
+                "train_preassign_actor=False holds the pre-assign actor at its initial weights, and this policy's actor "
+                "starts at random ones (heuristic_init=False, encoder='mlp' or pair_features=False): it would never learn "
+                "to pre-assign; set train_preassign_actor=True"
             )
         self.counterfactual_buffer = self._make_counterfactual_buffer()
         self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
