@@ -189,7 +189,7 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     from sb3_taskalloc.experiments.learn import LearnRun
 
     block = zoo_hyperparameters("TaskAlloc/RBF-v0")
-    assert block["policy_kwargs"]["rounds"] == 2  # what the merge must keep
+    assert block["policy_kwargs"]["rounds"] > 1  # what the merge must keep
     merged = over_zoo("TaskAlloc/RBF-v0", {"tau": 0.05, "policy_kwargs": {"select_pair_hidden": 8, "hidden_dim": 32}})
     assert merged["tau"] == 0.05 and merged["gamma"] == block["gamma"]
     assert merged["policy_kwargs"] == {**block["policy_kwargs"], "select_pair_hidden": 8, "hidden_dim": 32}
