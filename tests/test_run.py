@@ -113,8 +113,13 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     logged = np.genfromtxt(tmp_path / "progress.csv", delimiter=",", names=True)
     assert list(logged["daggeriteration"][-2:]) == [1.0, 2.0]  # genfromtxt drops the "/" of "dagger/iteration"
     assert model._last_obs is None
-    model.learn(4, reset_num_timesteps=False)
-    assert model.num_timesteps == 16
+    weights = {k: v.clone() for k, v in model.policy.selector.state_dict().items()}
+    callback.on_training_end()  # rl-zoo3 calls it again after learn(): no second DAgger
+    assert [h["iteration"] for h in callback.history] == [1.0, 2.0]
+    assert all(th.equal(v, weights[k]) for k, v in model.policy.selector.state_dict().items())
+    model.learn(4, reset_num_timesteps=False, callback=callback)  # a new learn() call runs it again
+    assert model.num_timesteps == 16 and callback.history is not None and len(callback.history) == 2
+    assert any(not th.equal(v, weights[k]) for k, v in model.policy.selector.state_dict().items())
     for bad in ({"iterations": 0}, {"imitation": "team"}, {"learning_rate": 0.0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SelectDAggerCallback(**bad)  # type: ignore[arg-type]

@@ -72,6 +72,7 @@ class SelectDAggerCallback(BaseCallback):
         }
         self.seed = seed
         self.history: list[dict[str, float]] = []
+        self._distilled = False  # whether this learn() call's DAgger has run
 
     def _init_callback(self) -> None:
         # Checked when learn() starts, so that a model or env it cannot distil fails before the training steps.
@@ -83,10 +84,18 @@ class SelectDAggerCallback(BaseCallback):
             raise ValueError("SelectDAggerCallback needs a registered training env: its spec makes the rollouts' env")
         self.env_spec: EnvSpec = spec
 
+    def _on_training_start(self) -> None:
+        self._distilled = False
+
     def _on_step(self) -> bool:
         return True
 
     def _on_training_end(self) -> None:
+        # Once per learn() call: rl-zoo3 calls the first callback's on_training_end again after learn() returns (to
+        # close a progress bar), which would run a second DAgger.
+        if self._distilled:
+            return
+        self._distilled = True
         assert isinstance(self.model, TwoStageSAC)
         seed = self.seed if self.seed is not None else None if self.model.seed is None else dagger_seed(self.model.seed)
         # The spec's wrappers (a Monitor, say) are left out: its id, keywords and time limit make the env.
