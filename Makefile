@@ -7,6 +7,8 @@ TORCH_SPEC ?= torch==2.13.0
 EXTRAS ?= tests,zoo
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(EXTRAS)
+# Test processes (pytest-xdist): `auto` is one per CPU core (2 on CI); TEST_WORKERS=0 runs the suite in one process.
+TEST_WORKERS ?= auto
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
@@ -28,11 +30,11 @@ demo: $(STAMP)
 
 # pytest exit code 5 means "no test collected": that is a failure here, never a silent pass.
 test: $(STAMP)
-	@$(PY) -m pytest -q -ra --durations=15 $(PYTEST_ARGS); rc=$$?; \
+	@$(PY) -m pytest -q -ra --durations=15 -n $(TEST_WORKERS) $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "ERROR: pytest collected no tests (exit 5)"; exit 1; fi; exit $$rc
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(PY) -m ruff check sb3_taskalloc envs tuning tests
