@@ -536,6 +536,36 @@ def test_pointer_pair_mlp_starts_at_the_rule():
         make_policy(env, select_pair_hidden=-1)
 
 
+def test_pointer_scarcity_starts_at_the_rule():
+    """``select_scarcity``: the pointer actor and the select critics read the two scarcity-weighted unit costs; under
+    ``heuristic_init`` the actor's weights on them start at 0, so it scores as the rule; a weight on them moves the
+    scores; a non-bool is refused."""
+    from sb3_taskalloc.common.torch_layers import SELECT_DYN, SELECT_SCARCITY
+
+    th.manual_seed(0)
+    env = gym.make("TaskAlloc/RBF-v0")
+    plain, scarce = make_policy(env), make_policy(env, select_scarcity=True)
+    assert plain.selector.head.dyn.in_features == SELECT_DYN
+    assert scarce.selector.head.dyn.in_features == SELECT_DYN + SELECT_SCARCITY
+    assert all(h.dyn.in_features == SELECT_DYN + SELECT_SCARCITY for h in scarce.select_critic.heads)
+    assert scarce.selector.head.dyn.weight[0, SELECT_DYN:].abs().sum() == 0
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=4)))
+    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
+    task_state, dyn = SelectState(view, task_of).features()
+
+    def scores(head):
+        return head(head.embed_entities(view), task_state, dyn, task_of)
+
+    with th.no_grad():
+        th.testing.assert_close(scores(scarce.selector.head), scores(plain.selector.head), rtol=0, atol=0)
+        scarce.selector.head.dyn.weight[0, SELECT_DYN] = -1.0
+        moved = scores(scarce.selector.head) - scores(plain.selector.head)
+    th.testing.assert_close(moved, -10.0 * dyn[..., SELECT_DYN])  # κ_s = 10
+    assert scarce._get_constructor_parameters()["select_scarcity"] is True
+    with pytest.raises(ValueError, match="select_scarcity must be True or False"):
+        make_policy(env, select_scarcity=1)
+
+
 def test_optimizers_default_to_fused_adam():
     """Adam runs fused unless ``optimizer_kwargs`` picks an implementation or another optimizer is chosen."""
     env = gym.make("TaskAlloc/Almighty-v0")
@@ -605,16 +635,19 @@ def test_narrow_linear_matches_linear():
     assert list(fast.state_dict()) == ["weight", "bias"]
 
 
-@pytest.mark.parametrize("state_value, pair_hidden", [(False, 0), (True, 0), (False, 8)])
-def test_pointer_scores_equal_their_definition(state_value, pair_hidden):
+@pytest.mark.parametrize("state_value, pair_hidden, scarcity", [(False, 0, False), (True, 0, False), (False, 8, False), (True, 8, True)])
+def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcity):
     """``PointerHead`` (one batched product over all tasks, then each entity's own column) scores
     u_i = d_i·e_j^t / √d + w·x_i^t (+ g([x_i^t, s_j^t])) (+ b(e_j^t)) with d = entity MLP, e = task MLP, s_j^t the
-    task state, as defined, in value and in every parameter's gradient."""
-    from sb3_taskalloc.common.torch_layers import PointerHead
+    task state, x_i^t the basis (with ``scarcity`` also the scarcity-weighted unit costs), as defined, in value and in
+    every parameter's gradient."""
+    from sb3_taskalloc.common.torch_layers import SELECT_DYN, SELECT_SCARCITY, PointerHead
 
     th.manual_seed(0)
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 5, seed=2)))
-    head = PointerHead(view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value, pair_hidden=pair_hidden)
+    head = PointerHead(
+        view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value, pair_hidden=pair_hidden, scarcity=scarcity
+    )
     task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
     st = SelectState(view, task_of)
     task_state, dyn = select_features(
@@ -622,6 +655,9 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden):
     )
     weights = th.randn(3, *task_of.shape, dtype=th.float64)
     own = task_of.clamp_min(0)
+    assert dyn.shape[-1] == SELECT_DYN + SELECT_SCARCITY and head.dyn.in_features == SELECT_DYN + SELECT_SCARCITY * scarcity
+    full = dyn
+    dyn = dyn[..., : head.dyn.in_features]  # the columns the head reads
 
     def reference():
         d, e = head.entity(view.entity), head.task(task_state)  # (B, N, H), (T, B, M, H)
@@ -635,7 +671,7 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden):
         return scores
 
     results = []
-    for fn in (lambda: head(head.embed_entities(view), task_state, dyn, task_of), reference):
+    for fn in (lambda: head(head.embed_entities(view), task_state, full, task_of), reference):
         head.zero_grad()
         out = fn()
         (out.double() * weights).sum().backward()
@@ -646,6 +682,37 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden):
     assert len(fast_grads) == len(ref_grads) == len(list(head.parameters()))
     for a, b in zip(fast_grads, ref_grads, strict=True):
         th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_scarcity_features_equal_their_definition():
+    """The last two dynamic features of the select stage: symlog(pair cost / Σ_k w_k^p·min(s_ik, rem_jk)) for p = 1, 2,
+    with w_jk = min(1, rem_jk / Σ_{i' ∈ choices of j} min(s_i'k, rem_jk)) over the task's choices left, re-derived entity
+    by entity at the start of the decoding and after two picks per task (the picked ones no longer offer supply)."""
+    from sb3_taskalloc.common.torch_layers import SELECT_DYN, symlog
+
+    th.manual_seed(3)
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 4, seed=5)))
+    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
+    st = SelectState(view, task_of)
+    for step in range(3):
+        _, dyn = st.features()
+        for b in range(task_of.shape[0]):
+            for i in th.nonzero(st.choosable[b]).flatten().tolist():
+                j = int(task_of[b, i])
+                rem = st.rem[b, j].double()
+                mates = th.nonzero(st.choosable[b] & (task_of[b] == j)).flatten()
+                offered = th.minimum(view.supply[b, mates].double(), rem).sum(0)
+                w = th.where(offered > 0, rem / offered.clamp_min(1e-12), th.ones_like(rem)).clamp_max(1.0)
+                own = th.minimum(view.supply[b, i].double(), rem)
+                for p in (1, 2):
+                    want = symlog(view.pair_cost[b, i, j].double() / (w**p * own).sum().clamp_min(1e-6))
+                    th.testing.assert_close(dyn[b, i, SELECT_DYN + p - 1].double(), want, rtol=1e-4, atol=1e-4)
+        if step < 2:
+            logits = -dyn[..., SELECT_DYN]  # pick the scarcity-weighted cheapest choice of each task
+            choice = st.choice_mask()  # (B, M, N)
+            picks = th.where(choice, logits.unsqueeze(1), -th.inf).argmax(-1)
+            st.advance(picks, choice.any(-1) & st.active)
+    assert not bool(st.choosable.all())  # picks were made
 
 
 def test_logit_scale_multiplies_the_pre_assign_logits():

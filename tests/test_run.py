@@ -241,6 +241,7 @@ def test_entry_points_answer_help(module):
         ({"policy_kwargs": {"hidden_dim": -4}}, "hidden_dim must be a positive integer"),
         ({"policy_kwargs": {"n_critics": 0}}, "n_critics must be a positive integer"),
         ({"policy_kwargs": {"select_pair_hidden": False}}, "select_pair_hidden must be an integer ≥ 0, got False"),
+        ({"policy_kwargs": {"select_scarcity": 1}}, "select_scarcity must be True or False, got 1"),
     ],
 )
 def test_bad_hyperparameters_are_named(kwargs, match):

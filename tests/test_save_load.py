@@ -31,6 +31,7 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
         # every solve stops at a node limit, but takes about 15 s here)
         {"rounds": 2, "decision_exact_top": 1},
         {"select_pair_hidden": 8},
+        {"select_scarcity": True},
     ],
 )
 def test_save_load_identical_predict(tmp_path, kwargs):

@@ -341,8 +341,10 @@ class FlatScorer(FlatNet):
 
 #: Size of the per-step task state of the select stage (remaining demand K + 4 scalars).
 SELECT_TASK_EXTRA = 4
-#: Size of the per-step dynamic entity features of the select stage.
+#: Size of the per-step dynamic entity features of the select stage that every pointer reads.
 SELECT_DYN = 7
+#: Size of the scarcity-weighted unit costs that follow them, read by a pointer with ``scarcity``.
+SELECT_SCARCITY = 2
 #: Index of the symlog unit cost (pair cost per unit of remaining demand covered) in the select stage's dynamic features.
 UNIT_COST = 6
 
@@ -353,7 +355,8 @@ class PointerHead(nn.Module):
     u_i = d_i·e_j^t / √d + w·x_i^t (+ g([x_i^t, s_j^t]) with ``pair_hidden``) (+ b(e_j^t) for a critic), where e_j^t
     encodes task j's state s_j^t after t picks (remaining demand, reward, cost so far, number of picks), d_i the entity
     and x_i^t a fixed basis of its dynamic pair features with task j (coverage of the remaining demand, pair cost,
-    margin, waste, unit cost), weighed linearly. This dot-product pointer replaces the paper's additive
+    margin, waste, unit cost; with ``scarcity`` also the unit cost with the resources weighed by their scarcity among
+    the candidates left), weighed linearly. This dot-product pointer replaces the paper's additive
     vᵀ tanh(W1 e + W2 d): it needs no (batch × entities × hidden) tensor per decoding step, which makes training an
     order of magnitude cheaper on CPUs. The optional MLP g buys back part of the additive form's expressiveness where
     it matters, the interaction of a candidate's pair features with its task's state, at one such tensor of width
@@ -366,6 +369,7 @@ class PointerHead(nn.Module):
     :param state_value: add a per-task baseline b(e_j^t) (used by the select critics)
     :param logit_scale: κ_s, the scores are multiplied by it (the inverse temperature of the pointer actor)
     :param pair_hidden: width of the MLP g over each candidate's dynamic pair features and its task's state (0: no g)
+    :param scarcity: read the scarcity-weighted unit costs too (the last ``SELECT_SCARCITY`` dynamic features)
     """
 
     def __init__(
@@ -377,14 +381,17 @@ class PointerHead(nn.Module):
         state_value: bool = False,
         logit_scale: float = 1.0,
         pair_hidden: int = 0,
+        scarcity: bool = False,
     ) -> None:
         super().__init__()
         self.logit_scale = logit_scale
         task_dim = n_resources + SELECT_TASK_EXTRA
+        #: Dynamic features read: the first n_dyn of the select stage's (a pointer without scarcity reads the basis).
+        self.n_dyn = SELECT_DYN + (SELECT_SCARCITY if scarcity else 0)
         self.entity = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
         self.task = mlp(task_dim, hidden_dim, hidden_dim, activation_fn)
-        self.dyn = nn.Linear(SELECT_DYN, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
-        self.pair = mlp(SELECT_DYN + task_dim, pair_hidden, 1, activation_fn) if pair_hidden > 0 else None
+        self.dyn = nn.Linear(self.n_dyn, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
+        self.pair = mlp(self.n_dyn + task_dim, pair_hidden, 1, activation_fn) if pair_hidden > 0 else None
         self.value = nn.Linear(hidden_dim, 1) if state_value else None
         self.scale = math.sqrt(hidden_dim)
         #: Skip the dot product (set by :meth:`freeze` when the task embeddings are identically 0).
@@ -408,8 +415,10 @@ class PointerHead(nn.Module):
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
         """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
-        dims); :param dyn: (..., B, N, SELECT_DYN); :param task_of: (B, N) task whose candidate entity i is (−1: none)
+        dims); :param dyn: (..., B, N, SELECT_DYN + SELECT_SCARCITY), of which the first :attr:`n_dyn` are read;
+        :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
+        dyn = dyn[..., : self.n_dyn]
         linear = self.dyn(dyn).squeeze(-1)
         if not self.skip_pair:
             assert self.pair is not None

@@ -110,6 +110,11 @@ class TAMPolicy(BasePolicy):
         linear read-out cannot express, e.g. a candidate's coverage weighed by how much of the demand is left. It costs
         one (batch × entities × width) tensor per decoding step. With ``heuristic_init`` its output layer starts at 0,
         so the pointer starts at the rule
+    :param select_scarcity: the pointer actor and the select critics also read each candidate's unit cost with the
+        resources weighed by their scarcity among the task's candidates left (not in the paper;
+        :func:`.select_stage.select_features`): what a greedy cover needs to spend a scarce resource's suppliers first,
+        which the exact cover of a task's candidates does and the unit-cost rule does not. With ``heuristic_init`` their
+        weights start at 0, so the pointer starts at the rule
     :param rounds: pre-assign rounds per decision (not in the paper, where there is one): after each round, the
         entities the pointer did not pick pre-assign again among the open tasks that no round has tried yet, so a task
         whose candidates fell short no longer holds every entity that chose it. The stored decision, which the losses
@@ -182,6 +187,7 @@ class TAMPolicy(BasePolicy):
         logit_scale: float | None = None,
         select_logit_scale: float | None = None,
         select_pair_hidden: int = 0,
+        select_scarcity: bool = False,
         n_critics: int = 2,
         rounds: int = 1,
         decision_samples: int = 1,
@@ -228,6 +234,7 @@ class TAMPolicy(BasePolicy):
         )
         check_counts(dict(select_pair_hidden=select_pair_hidden, decision_exact_top=decision_exact_top), minimum=0)
         self.select_pair_hidden = select_pair_hidden
+        self.select_scarcity = select_scarcity
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
         self.pair_features = pair_features
@@ -252,6 +259,8 @@ class TAMPolicy(BasePolicy):
         for name, scale in scales.items():
             if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
+        if not isinstance(select_scarcity, bool):
+            raise ValueError(f"select_scarcity must be True or False, got {select_scarcity!r}")
         if not isinstance(select_decision_exact, bool):
             raise ValueError(f"select_decision_exact must be True or False, got {select_decision_exact!r}")
         if decision_exact_top and decision_samples > 1:
@@ -349,12 +358,16 @@ class TAMPolicy(BasePolicy):
                 self.activation_fn,
                 logit_scale=self.select_logit_scale,
                 pair_hidden=self.select_pair_hidden,
+                scarcity=self.select_scarcity,
             )
         )
         self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
-            return [PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True) for _ in range(self.n_critics)]
+            return [
+                PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True, scarcity=self.select_scarcity)
+                for _ in range(self.n_critics)
+            ]
 
         self.select_critic = SelectCritic(make_heads())
         self.select_critic.optimizer = self._make_optimizer(self.select_critic, lr)
@@ -420,6 +433,7 @@ class TAMPolicy(BasePolicy):
                 logit_scale=self.logit_scale,
                 select_logit_scale=self.select_logit_scale,
                 select_pair_hidden=self.select_pair_hidden,
+                select_scarcity=self.select_scarcity,
                 n_critics=self.n_critics,
                 rounds=self.rounds,
                 decision_samples=self.decision_samples,
