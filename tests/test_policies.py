@@ -635,7 +635,9 @@ def test_narrow_linear_matches_linear():
     assert list(fast.state_dict()) == ["weight", "bias"]
 
 
-@pytest.mark.parametrize("state_value, pair_hidden, scarcity", [(False, 0, False), (True, 0, False), (False, 8, False), (True, 8, True)])
+@pytest.mark.parametrize(
+    "state_value, pair_hidden, scarcity", [(False, 0, False), (True, 0, False), (False, 8, False), (True, 8, True)]
+)
 def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcity):
     """``PointerHead`` (one batched product over all tasks, then each entity's own column) scores
     u_i = d_i·e_j^t / √d + w·x_i^t (+ g([x_i^t, s_j^t])) (+ b(e_j^t)) with d = entity MLP, e = task MLP, s_j^t the

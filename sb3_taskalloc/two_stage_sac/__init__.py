@@ -41,7 +41,10 @@ published code):
    add a per-task baseline b(e_j^t). All tasks of all batch rows decode in parallel. ``select_pair_hidden`` > 0
    adds to the actor's logits an MLP g([x_i^t, s_j^t]) of the entity's basis and its task's state (not in the
    paper): the interactions of the two that the dot product and the linear read-out cannot express, at one
-   batch × entities × width tensor per step.
+   batch × entities × width tensor per step. ``select_scarcity`` adds two columns to x_i^t (not in the paper): the
+   unit cost with each resource k weighed by w_k and by w_k², w_k = (remaining demand of k) / (what the task's
+   candidates left offer of k), so that a candidate rich in a resource few others offer ranks first, as in the
+   exact cover of the candidates and not in the unit-cost rule.
 7. Scores are divided by √d in the actor (paper) and not in the critics. Inputs are symlog-normalised.
 8. Warm-up (``learning_starts``): uniformly random valid pre-assignments and picks (``warmup_exploration="uniform"``),
    or samples of the policy itself (``"policy"``: with ``heuristic_init``, the cost-greedy rules), whose transitions
