@@ -537,9 +537,9 @@ def test_pointer_pair_mlp_starts_at_the_rule():
 
 
 def test_pointer_scarcity_starts_at_the_rule():
-    """``select_scarcity``: the pointer actor and the select critics read the two scarcity-weighted unit costs; under
-    ``heuristic_init`` the actor's weights on them start at 0, so it scores as the rule; a weight on them moves the
-    scores; a non-bool is refused."""
+    """``select_scarcity``: the pointer actor and the select critics read the two scarcity-weighted unit costs, which
+    the select stage appends to the basis (unchanged) only for them; under ``heuristic_init`` the actor's weights on
+    them start at 0, so it scores as the rule; a weight on them moves the scores; a non-bool is refused."""
     from sb3_taskalloc.common.torch_layers import SELECT_DYN, SELECT_SCARCITY
 
     th.manual_seed(0)
@@ -551,15 +551,19 @@ def test_pointer_scarcity_starts_at_the_rule():
     assert scarce.selector.head.dyn.weight[0, SELECT_DYN:].abs().sum() == 0
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=4)))
     task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
-    task_state, dyn = SelectState(view, task_of).features()
+    task_state, basis = SelectState(view, task_of).features()
+    scarce_state, dyn = SelectState(view, task_of, scarcity=True).features()
+    assert basis.shape[-1] == SELECT_DYN and dyn.shape[-1] == SELECT_DYN + SELECT_SCARCITY
+    th.testing.assert_close(dyn[..., :SELECT_DYN], basis, rtol=0, atol=0)
+    th.testing.assert_close(scarce_state, task_state, rtol=0, atol=0)
 
-    def scores(head):
-        return head(head.embed_entities(view), task_state, dyn, task_of)
+    def scores(head, features):
+        return head(head.embed_entities(view), task_state, features, task_of)
 
     with th.no_grad():
-        th.testing.assert_close(scores(scarce.selector.head), scores(plain.selector.head), rtol=0, atol=0)
+        th.testing.assert_close(scores(scarce.selector.head, dyn), scores(plain.selector.head, basis), rtol=0, atol=0)
         scarce.selector.head.dyn.weight[0, SELECT_DYN] = -1.0
-        moved = scores(scarce.selector.head) - scores(plain.selector.head)
+        moved = scores(scarce.selector.head, dyn) - scores(plain.selector.head, basis)
     th.testing.assert_close(moved, -10.0 * dyn[..., SELECT_DYN])  # κ_s = 10
     assert scarce._get_constructor_parameters()["select_scarcity"] is True
     with pytest.raises(ValueError, match="select_scarcity must be True or False"):
@@ -653,13 +657,17 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcit
     task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
     st = SelectState(view, task_of)
     task_state, dyn = select_features(
-        view, task_of, st.pc_own, st.rem.expand(3, -1, -1, -1), st.cost.expand(3, -1, -1), st.npick.expand(3, -1, -1)
+        view,
+        task_of,
+        st.pc_own,
+        st.rem.expand(3, -1, -1, -1),
+        st.cost.expand(3, -1, -1),
+        st.npick.expand(3, -1, -1),
+        scarcity=scarcity,
     )
     weights = th.randn(3, *task_of.shape, dtype=th.float64)
     own = task_of.clamp_min(0)
-    assert dyn.shape[-1] == SELECT_DYN + SELECT_SCARCITY and head.dyn.in_features == SELECT_DYN + SELECT_SCARCITY * scarcity
-    full = dyn
-    dyn = dyn[..., : head.dyn.in_features]  # the columns the head reads
+    assert dyn.shape[-1] == head.dyn.in_features == SELECT_DYN + SELECT_SCARCITY * scarcity
 
     def reference():
         d, e = head.entity(view.entity), head.task(task_state)  # (B, N, H), (T, B, M, H)
@@ -673,7 +681,7 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcit
         return scores
 
     results = []
-    for fn in (lambda: head(head.embed_entities(view), task_state, full, task_of), reference):
+    for fn in (lambda: head(head.embed_entities(view), task_state, dyn, task_of), reference):
         head.zero_grad()
         out = fn()
         (out.double() * weights).sum().backward()
@@ -695,7 +703,7 @@ def test_scarcity_features_equal_their_definition():
     th.manual_seed(3)
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 4, seed=5)))
     task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
-    st = SelectState(view, task_of)
+    st = SelectState(view, task_of, scarcity=True)
     for step in range(3):
         _, dyn = st.features()
         for b in range(task_of.shape[0]):

@@ -386,7 +386,8 @@ class PointerHead(nn.Module):
         super().__init__()
         self.logit_scale = logit_scale
         task_dim = n_resources + SELECT_TASK_EXTRA
-        #: Dynamic features read: the first n_dyn of the select stage's (a pointer without scarcity reads the basis).
+        #: Whether the head reads the scarcity-weighted unit costs after the basis (its inputs must then carry them).
+        self.scarcity = scarcity
         self.n_dyn = SELECT_DYN + (SELECT_SCARCITY if scarcity else 0)
         self.entity = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
         self.task = mlp(task_dim, hidden_dim, hidden_dim, activation_fn)
@@ -415,10 +416,9 @@ class PointerHead(nn.Module):
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
         """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
-        dims); :param dyn: (..., B, N, SELECT_DYN + SELECT_SCARCITY), of which the first :attr:`n_dyn` are read;
+        dims); :param dyn: (..., B, N, n_dyn): the select stage's features computed with this head's ``scarcity``;
         :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
-        dyn = dyn[..., : self.n_dyn]
         linear = self.dyn(dyn).squeeze(-1)
         if not self.skip_pair:
             assert self.pair is not None

@@ -272,11 +272,11 @@ def select_losses(
         n = len(rounds)
         view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
         pick_rank = pick_rank.repeat(n, 1, 1)
-    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank)
+    head = selector.head  # the critics and the prior are built with the same features (TAMPolicy's select_scarcity)
+    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank, head.scarcity)
     if tf is None:
         return None
     M = pick_rank.shape[1]
-    head = selector.head
     logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
     dist = SegmentedCategorical(logits, tf.choices, tf.seg, M)
     qs = critic(critic.embed(view), tf.task_state, tf.dyn, tf.task_of)  # (T, B, N) each
@@ -353,7 +353,7 @@ def pick_log_probs(
     :param pick_rank: (B, M, N) step at which task j picks entity i (−1: not picked); every pick must be a valid choice
         of its step, as a decode's are
     """
-    tf = teacher_forced(view, task_of, pick_rank)
+    tf = teacher_forced(view, task_of, pick_rank, head.scarcity)
     if tf is None:
         return None
     logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)

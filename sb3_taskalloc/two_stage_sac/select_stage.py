@@ -129,6 +129,7 @@ def select_features(
     npick: th.Tensor,
     useful: tuple[th.Tensor, th.Tensor] | None = None,
     choices: th.Tensor | None = None,
+    scarcity: bool = False,
 ) -> tuple[th.Tensor, th.Tensor]:
     """Inputs of the pointer heads for one or many (leading dims) select-stage states.
 
@@ -137,16 +138,18 @@ def select_features(
     :param pc_own: (B, N) pair cost of each entity for that task
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
     :param useful: :func:`useful_supply` of (``task_of``, ``rem``) when already computed
-    :param choices: (..., B, N) the candidates still to choose from (:func:`choosable`); None: every candidate that
-        covers some of its task's remaining demand
-    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, SELECT_DYN + SELECT_SCARCITY):
-        coverage of the remaining demand, symlog pair cost, symlog margin m (reward − cost so far − pair cost), relu(m),
-        waste share of the supply, whether the entity alone covers the remaining demand, and symlog of its unit cost
-        (pair cost per unit of the remaining demand it covers): a fixed basis that the pointer weighs linearly; then
-        the unit cost with each resource weighed by its scarcity w_k and by w_k², where w_k = (remaining demand of k) /
-        (what the task's choices still offer of k) ∈ [0, 1] is 1 where every choice's k is needed: pair cost per
-        unit of scarce demand covered, the key of a greedy cover that spends the scarce resource's suppliers first
-        (read by a pointer with ``scarcity``)
+    :param choices: (..., B, N) the candidates still to choose from (:func:`choosable`), which the scarcity weights
+        are taken over; None: every candidate that covers some of its task's remaining demand
+    :param scarcity: append the scarcity-weighted unit costs (for a pointer head with ``scarcity``; the other heads
+        skip their cost)
+    :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, SELECT_DYN): coverage of the
+        remaining demand, symlog pair cost, symlog margin m (reward − cost so far − pair cost), relu(m), waste share of
+        the supply, whether the entity alone covers the remaining demand, and symlog of its unit cost (pair cost per
+        unit of the remaining demand it covers), a fixed basis that the pointer weighs linearly; with ``scarcity``
+        (SELECT_DYN + SELECT_SCARCITY columns) then the unit cost with each resource weighed by its scarcity w_k and by
+        w_k², where w_k = (remaining demand of k) / (what the task's choices still offer of k) ∈ [0, 1] is 1 where
+        every choice's k is needed: pair cost per unit of scarce demand covered, the key of a greedy cover that spends
+        the scarce resource's suppliers first
     """
     demand_sum = view.demand.sum(-1).clamp_min(1e-6)
     reward = view.reward.expand_as(cost)
@@ -168,16 +171,17 @@ def select_features(
     m = symlog(margin)
     unit_cost = symlog(pc_own / useful_i.clamp_min(1e-6))  # the greedy allocator's key: cost per unit of demand covered
     covers = (cov >= 1 - 1e-6).float()
-    # Scarcity of each resource among the choices left: w_jk = rem_jk / Σ_{i ∈ choices of j} min(s_ik, rem_jk).
-    per_resource = th.minimum(view.supply, rem_i)  # (..., B, N, K)
-    if choices is None:
-        choices = (useful_i > COVER_TOL) & (task_of >= 0)
-    offered = segment_sum(choices.unsqueeze(-1) * per_resource, idx, rem.shape[-2], vector=True)  # (..., B, M, K)
-    w = (rem / offered.clamp_min(1e-6)).clamp_max(1.0)  # ≤ 1 wherever the task is still winnable
-    w_i = th.gather(w, -2, idx.unsqueeze(-1).expand(*idx.shape, w.shape[-1]))
-    scarce = [symlog(pc_own / (w_i**p * per_resource).sum(-1).clamp_min(1e-6)) for p in (1, 2)]
-    dyn = th.stack([cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, covers, unit_cost, *scarce], dim=-1)
-    return task_state, dyn
+    columns = [cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, covers, unit_cost]
+    if scarcity:
+        # Scarcity of each resource among the choices left: w_jk = rem_jk / Σ_{i ∈ choices of j} min(s_ik, rem_jk).
+        per_resource = th.minimum(view.supply, rem_i)  # (..., B, N, K)
+        if choices is None:
+            choices = (useful_i > COVER_TOL) & (task_of >= 0)
+        offered = segment_sum(choices.unsqueeze(-1) * per_resource, idx, rem.shape[-2], vector=True)  # (..., B, M, K)
+        w = (rem / offered.clamp_min(1e-6)).clamp_max(1.0)  # ≤ 1 wherever the task is still winnable
+        w_i = th.gather(w, -2, idx.unsqueeze(-1).expand(*idx.shape, w.shape[-1]))
+        columns += [symlog(pc_own / (w_i**p * per_resource).sum(-1).clamp_min(1e-6)) for p in (1, 2)]
+    return task_state, th.stack(columns, dim=-1)
 
 
 class SelectState:
@@ -188,13 +192,15 @@ class SelectState:
 
     :param view: the observations
     :param task_of: (B, N) task whose candidate entity i is in this round (−1: none)
+    :param scarcity: the features carry the scarcity-weighted unit costs (for a pointer head with ``scarcity``)
     """
 
-    def __init__(self, view: ObsView, task_of: th.Tensor) -> None:
+    def __init__(self, view: ObsView, task_of: th.Tensor, scarcity: bool = False) -> None:
         B, N = task_of.shape
         M = view.task_mask.shape[1]
         self.view = view
         self.task_of = task_of
+        self.scarcity = scarcity
         self.slots = th.arange(M, device=task_of.device)
         self.seg = task_of.unsqueeze(1) == self.slots.view(1, M, 1)  # (B, M, N) candidates of task j
         self.avail = task_of >= 0  # (B, N) candidates not picked yet
@@ -209,10 +215,10 @@ class SelectState:
         self.active = view.task_mask & still_winnable(view, task_of, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
-        """Task states (B, M, K + 4) and entity dynamic features (B, N, SELECT_DYN + SELECT_SCARCITY) for the pointer
-        heads."""
+        """Task states (B, M, K + 4) and entity dynamic features (B, N, SELECT_DYN (+ SELECT_SCARCITY)) for the
+        pointer heads."""
         return select_features(
-            self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick, self.useful, self.choosable
+            self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick, self.useful, self.choosable, self.scarcity
         )
 
     def choice_mask(self) -> th.Tensor:
@@ -267,7 +273,7 @@ def decode_round(
     :param temperature: T of sampled picks, drawn from softmax(logits / T)
     :param generator: the random stream of sampled picks (None: torch's global one)
     """
-    st = SelectState(view, task_of)
+    st = SelectState(view, task_of, scarcity=head is not None and head.scarcity)
     B, M, N = st.seg.shape
     seg = task_of.clamp_min(0)
     d = None if head is None or uniform else head.embed_entities(view)
@@ -487,10 +493,12 @@ class TeacherForcedRound(NamedTuple):
     reward: th.Tensor  # (T, B, M)
     done: th.Tensor  # (T, B, M)
     task_state: th.Tensor  # (T, B, M, K + 4) pointer inputs before the pick
-    dyn: th.Tensor  # (T, B, N, SELECT_DYN + SELECT_SCARCITY)
+    dyn: th.Tensor  # (T, B, N, SELECT_DYN (+ SELECT_SCARCITY))
 
 
-def teacher_forced(view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> TeacherForcedRound | None:
+def teacher_forced(
+    view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, scarcity: bool = False
+) -> TeacherForcedRound | None:
     """All states and transitions of a stored decoding round at once.
 
     Under teacher forcing every state is known in advance (remaining demand after t picks = relu(demand − Σ supplies of
@@ -498,6 +506,7 @@ def teacher_forced(view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> T
 
     :param task_of: (B, N) task each entity was a candidate of in this round (−1: none)
     :param pick_rank: (B, M, N) step at which task j picked entity i (−1: not picked)
+    :param scarcity: the features carry the scarcity-weighted unit costs (for pointer heads with ``scarcity``)
     :return: the round's transitions, or None when no task picked anything
     """
     cand = task_of >= 0
@@ -524,7 +533,9 @@ def teacher_forced(view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> T
     choices_after = choosable(view, task_of, avail_after, rem_after)
     mask = choices & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
     reward, done, _ = transition(view, task_of, valid, pc, rem_after, pc_cum, choices_after, pc_own)
-    task_state, dyn = select_features(view, task_of, pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful, choices)
+    task_state, dyn = select_features(
+        view, task_of, pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful, choices, scarcity
+    )
     return TeacherForcedRound(task_of, seg, pf, valid, mask, reward, done, task_state, dyn)
 
 
