@@ -176,7 +176,7 @@ def select_features(
         # Scarcity of each resource among the choices left: w_jk = rem_jk / Σ_{i ∈ choices of j} min(s_ik, rem_jk).
         per_resource = th.minimum(view.supply, rem_i)  # (..., B, N, K)
         if choices is None:
-            choices = (useful_i > COVER_TOL) & (task_of >= 0)
+            choices = choosable(view, task_of, task_of >= 0, rem, (useful_i, rem_i))
         offered = segment_sum(choices.unsqueeze(-1) * per_resource, idx, rem.shape[-2], vector=True)  # (..., B, M, K)
         w = (rem / offered.clamp_min(1e-6)).clamp_max(1.0)  # ≤ 1 wherever the task is still winnable
         w_i = th.gather(w, -2, idx.unsqueeze(-1).expand(*idx.shape, w.shape[-1]))
