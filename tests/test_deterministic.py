@@ -33,22 +33,27 @@ CASES: dict[str, tuple[str, dict[str, Any], dict[str, Any], int]] = {
     "EPT": ("TaskAlloc/EPT-v0", {}, {}, 24),
     "RBF": ("TaskAlloc/RBF-v0", {}, {}, 24),
     "MT": ("TaskAlloc/MT-v0", {}, {}, 24),
-    "RBF-attention": ("TaskAlloc/RBF-v0", {"n_attention_layers": 1, "monotonic_mixer": True}, {}, 16),
+    "RBF-attention": ("TaskAlloc/RBF-v0", {"n_attention_layers": 1, "mixer_kwargs": {"monotonic": True}}, {}, 16),
     "EPT-no-preassign-sequential": ("TaskAlloc/EPT-v0", {"preassign": False}, {}, 16),
     "EPT-no-preassign-random": ("TaskAlloc/EPT-v0", {"preassign": False, "task_order": "random"}, {}, 16),
     "EPT-mlp-encoder": ("TaskAlloc/EPT-v0", {"encoder": "mlp"}, {}, 16),
     "EPT-global-mixer": ("TaskAlloc/EPT-v0", {"mixer": "global"}, {}, 16),
-    "EPT-paper-init": ("TaskAlloc/EPT-v0", {"heuristic_init": False, "pair_features": False, "hyper_bias": False}, {}, 16),
+    "EPT-paper-init": (
+        "TaskAlloc/EPT-v0",
+        {"heuristic_init": False, "pair_features": False, "mixer_kwargs": {"hyper_bias": False}},
+        {},
+        16,
+    ),
     "RBF-paper": (
         "TaskAlloc/RBF-v0",
         PAPER_KWARGS["policy_kwargs"],
         {k: v for k, v in PAPER_KWARGS.items() if k != "policy_kwargs"},
         16,
     ),
-    "EPT-warmup-fixed-alpha": (
+    "EPT-fixed-alpha": (
         "TaskAlloc/EPT-v0",
         {},
-        {"actor_warmup": 4, "ent_coef": 0.05, "select_ent_coef": "auto_0.2", "prior_coef": 0.0, "target_update_interval": 2},
+        {"ent_coef": 0.05, "select_kwargs": {"ent_coef": "auto_0.2"}, "prior_coef": 0.0, "target_update_interval": 2},
         16,
     ),
 }
@@ -76,16 +81,18 @@ def _digest(*arrays: np.ndarray) -> str:
 def fingerprint(name: str) -> dict[str, Any]:
     """Train the case ``name`` briefly on the CPU and summarise everything it did."""
     env_id, policy_kwargs, algo_kwargs, steps = CASES[name]
+    algo_kwargs = dict(algo_kwargs)
+    select_kwargs = {"batch_size": 4, **algo_kwargs.pop("select_kwargs", {})}
     model = TwoStageSAC(
         "TAMPolicy",
         env_id,
         learning_starts=steps // 2,
         batch_size=8,
-        select_batch_size=4,
         train_freq=1,
         seed=3,
         device="cpu",
         policy_kwargs={"hidden_dim": 16, **policy_kwargs},
+        select_kwargs=select_kwargs,
         **algo_kwargs,
     )
     capture = _Capture()

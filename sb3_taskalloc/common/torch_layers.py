@@ -343,8 +343,6 @@ class FlatScorer(FlatNet):
 SELECT_TASK_EXTRA = 4
 #: Size of the per-step dynamic entity features of the select stage that every pointer reads.
 SELECT_DYN = 7
-#: Size of the scarcity-weighted unit costs that follow them, read by a pointer with ``scarcity``.
-SELECT_SCARCITY = 2
 #: Index of the symlog unit cost (pair cost per unit of remaining demand covered) in the select stage's dynamic features.
 UNIT_COST = 6
 
@@ -352,15 +350,11 @@ UNIT_COST = 6
 class PointerHead(nn.Module):
     """Pointer scores of the select stage for the candidates of each task.
 
-    u_i = d_i·e_j^t / √d + w·x_i^t (+ g([x_i^t, s_j^t]) with ``pair_hidden``) (+ b(e_j^t) for a critic), where e_j^t
-    encodes task j's state s_j^t after t picks (remaining demand, reward, cost so far, number of picks), d_i the entity
-    and x_i^t a fixed basis of its dynamic pair features with task j (coverage of the remaining demand, pair cost,
-    margin, waste, unit cost; with ``scarcity`` also the unit cost with the resources weighed by their scarcity among
-    the candidates left), weighed linearly. This dot-product pointer replaces the paper's additive
-    vᵀ tanh(W1 e + W2 d): it needs no (batch × entities × hidden) tensor per decoding step, which makes training an
-    order of magnitude cheaper on CPUs. The optional MLP g buys back part of the additive form's expressiveness where
-    it matters, the interaction of a candidate's pair features with its task's state, at one such tensor of width
-    ``pair_hidden`` per step.
+    u_i = d_i·e_j^t / √d + w·x_i^t (+ b(e_j^t) for a critic), where e_j^t encodes task j's state s_j^t after t picks
+    (remaining demand, reward, cost so far, number of picks), d_i the entity and x_i^t a fixed basis of its dynamic
+    pair features with task j (coverage of the remaining demand, pair cost, margin, waste, unit cost), weighed
+    linearly. This dot-product pointer replaces the paper's additive vᵀ tanh(W1 e + W2 d): it needs no
+    (batch × entities × hidden) tensor per decoding step, which makes training an order of magnitude cheaper on CPUs.
 
     :param entity_dim: entity feature size
     :param n_resources: K
@@ -368,8 +362,6 @@ class PointerHead(nn.Module):
     :param activation_fn: MLP activation
     :param state_value: add a per-task baseline b(e_j^t) (used by the select critics)
     :param logit_scale: κ_s, the scores are multiplied by it (the inverse temperature of the pointer actor)
-    :param pair_hidden: width of the MLP g over each candidate's dynamic pair features and its task's state (0: no g)
-    :param scarcity: read the scarcity-weighted unit costs too (the last ``SELECT_SCARCITY`` dynamic features)
     """
 
     def __init__(
@@ -380,33 +372,23 @@ class PointerHead(nn.Module):
         activation_fn: type[nn.Module] = nn.ReLU,
         state_value: bool = False,
         logit_scale: float = 1.0,
-        pair_hidden: int = 0,
-        scarcity: bool = False,
     ) -> None:
         super().__init__()
         self.logit_scale = logit_scale
         task_dim = n_resources + SELECT_TASK_EXTRA
-        #: Whether the head reads the scarcity-weighted unit costs after the basis (its inputs must then carry them).
-        self.scarcity = scarcity
-        self.n_dyn = SELECT_DYN + (SELECT_SCARCITY if scarcity else 0)
         self.entity = mlp(entity_dim, hidden_dim, hidden_dim, activation_fn)
         self.task = mlp(task_dim, hidden_dim, hidden_dim, activation_fn)
-        self.dyn = nn.Linear(self.n_dyn, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
-        self.pair = mlp(self.n_dyn + task_dim, pair_hidden, 1, activation_fn) if pair_hidden > 0 else None
+        self.dyn = nn.Linear(SELECT_DYN, 1)  # linear read-out of a fixed nonlinear basis (as the TAM pair term)
         self.value = nn.Linear(hidden_dim, 1) if state_value else None
         self.scale = math.sqrt(hidden_dim)
         #: Skip the dot product (set by :meth:`freeze` when the task embeddings are identically 0).
         self.skip_dot = False
-        #: Skip g (set by :meth:`freeze` when its output layer is identically 0).
-        self.skip_pair = self.pair is None
 
     def freeze(self) -> None:
         """Mark the weights as constant: with an all-zero output layer of the task embeddings (a rule-initialised prior)
         and no baseline, d_i·e_j ≡ 0 and the scores are the linear read-out of the dynamic features alone, computed
-        without the entity and task MLPs; likewise g with an all-zero output layer. Call again after the weights
-        change."""
+        without the entity and task MLPs. Call again after the weights change."""
         self.skip_dot = self.value is None and zero_output(self.task)
-        self.skip_pair = self.pair is None or zero_output(self.pair)
 
     def embed_entities(self, view: ObsView) -> th.Tensor:
         """(B, N, H) entity embeddings d_i (an empty (B, N, 0) tensor when :attr:`skip_dot` makes them unused)."""
@@ -416,14 +398,10 @@ class PointerHead(nn.Module):
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
         """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
-        dims); :param dyn: (..., B, N, n_dyn): the select stage's features computed with this head's ``scarcity``;
+        dims); :param dyn: (..., B, N, SELECT_DYN) the select stage's dynamic features;
         :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
         linear = self.dyn(dyn).squeeze(-1)
-        if not self.skip_pair:
-            assert self.pair is not None
-            own = th.gather(task_state, -2, task_of.clamp_min(0).unsqueeze(-1).expand(*dyn.shape[:-1], task_state.shape[-1]))
-            linear = linear + self.pair(th.cat([dyn, own], dim=-1)).squeeze(-1)  # g([x_i^t, s_j^t]) of i's own task j
         if self.skip_dot:
             return self._scaled(linear)
         e = self.task(task_state)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -9,6 +10,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch as th
 
 
@@ -30,6 +32,29 @@ def check_choices(choices: dict[str, tuple[Any, tuple[Any, ...]]]) -> None:
     for name, (value, allowed) in choices.items():
         if value not in allowed:
             raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {value!r}")
+
+
+def check_bools(flags: dict[str, Any]) -> None:
+    """A clear error for the first of ``flags`` (name -> value) that is not a bool: ``"false"`` or ``"no"`` would act
+    as True, and 0/1 from a YAML file are accepted as what they mean."""
+    for name, flag in flags.items():
+        if not isinstance(flag, bool | np.bool_) and flag not in (0, 1):
+            raise ValueError(f"{name} must be True or False, got {flag!r}")
+
+
+def check_finite(values: dict[str, Any], minimum: float = 0.0, inclusive: bool = False) -> None:
+    """A clear error for the first of ``values`` (name -> value) that is not a finite number above ``minimum`` (or at
+    least ``minimum`` with ``inclusive``). A bool is refused: ``tau=True`` is a mistake, not 1.0.
+
+    :param values: the values to check, by the name the error gives
+    :param minimum: the bound
+    :param inclusive: whether ``minimum`` itself is allowed
+    """
+    what = f"a finite number {'>=' if inclusive else '>'} {minimum:g}"
+    for name, value in values.items():
+        number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        if not (number and (value >= minimum if inclusive else value > minimum)):
+            raise ValueError(f"{name} must be {what}, got {value!r}")
 
 
 def cuda_unavailable(device: str) -> str | None:

@@ -9,7 +9,8 @@ import gymnasium as gym
 from gymnasium.envs.registration import EnvSpec
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC, check_distill_select
+from sb3_taskalloc.two_stage_sac.dagger import check_distill_select
+from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 
 def dagger_seed(seed: int) -> int:

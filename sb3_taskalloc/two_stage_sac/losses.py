@@ -19,16 +19,8 @@ from torch.nn import functional as F
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
 from sb3_taskalloc.common.policies import CriticContext, PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
-from sb3_taskalloc.two_stage_sac.select_stage import (
-    TeacherForcedRound,
-    cover_search,
-    own_column,
-    round_profit,
-    sampled_search,
-    select_search,
-    stored_rounds,
-    teacher_forced,
-)
+from sb3_taskalloc.two_stage_sac.search import select_search
+from sb3_taskalloc.two_stage_sac.select_stage import TeacherForcedRound, own_column, stored_rounds, teacher_forced
 
 
 @contextmanager
@@ -55,62 +47,6 @@ def state_entropy(dist: MaskedCategorical, view: ObsView, per_entity: bool = Fal
     if not per_entity:
         return total
     return total / view.assignable.sum(1).clamp_min(1)
-
-
-class PreAssignCriticLoss(NamedTuple):
-    loss: th.Tensor  # ½ Σ_k MSE(Q^k_tot(s, c), y)
-    target_q: th.Tensor  # (B,) y
-    current: tuple[th.Tensor, ...]  # (B,) Q^k_tot(s, c) of each critic k
-    contexts: list[CriticContext]  # the online critics' action-independent parts on s (reused by the actor loss)
-
-
-def preassign_critic_loss(
-    actor: PreAssignActor,
-    critic: TwinCritic,
-    critic_target: TwinCritic,
-    view: ObsView,
-    next_view: ObsView,
-    rewards: th.Tensor,
-    dones: th.Tensor,
-    candidates: th.Tensor,
-    gamma: float | th.Tensor,
-    alpha: th.Tensor,
-    entropy_per_entity: bool = False,
-) -> PreAssignCriticLoss:
-    """The paper's L_critic(φ) in its soft form (implementation details 2–3):
-    y = r + γ(1 − terminated)[min_k AMIX̄^k(Σ_j π_i(j|s') Q̄^k_i(s', j)) + α·H(s')], H(s) = Σ_i H(π_i(·|s)), and the
-    loss ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)² on the stored pre-assignment c.
-
-    :param rewards: (B,) env rewards (n-step returns); :param dones: (B,) 1 where s' is terminal (not truncated)
-    :param gamma: γ, or (B,) γ^k per transition for n-step returns (s' is then the state k steps later)
-    :param candidates: (B, M, N) the stored candidate sets (the one-hot c)
-    :param alpha: the temperature α (a constant of this loss)
-    :param entropy_per_entity: the bonus is the mean per-entity entropy instead of the sum (:func:`state_entropy`)
-    """
-    with th.no_grad():
-        next_dist = actor(next_view)
-        next_q = th.stack(critic_target(next_view, next_dist.probs), dim=0).min(0).values
-        next_v = next_q + alpha * state_entropy(next_dist, next_view, entropy_per_entity)
-        target_q = rewards + (1 - dones) * gamma * next_v
-    assign = candidates.transpose(1, 2).float()  # one-hot c: (B, N, M)
-    contexts = critic.contexts(view)
-    current = critic.mix(contexts, assign)
-    loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
-    return PreAssignCriticLoss(loss, target_q, tuple(current), contexts)  # type: ignore[arg-type]
-
-
-def paired_critic_loss(current: tuple[th.Tensor, ...], target_q: th.Tensor, start: int, n_pairs: int) -> th.Tensor:
-    """The paired term of the stage-1 critic loss on counterfactual pairs (implementation detail 17): rows
-    ``start`` … ``start + n_pairs`` − 1 hold replayed transitions (s, c) and the next ``n_pairs`` rows the branched
-    transitions (s, c′) of the same states; the loss is ½ Σ_k mean((Q^k(s, c) − Q^k(s, c′)) − (y − y′))². Both
-    transitions share the env's random state, so y − y′ carries little of the noise of each target, and the state's
-    value, which dominates each row's squared error, cancels: the term fits what the actor follows.
-
-    :param current: (B,) Q^k_tot of each critic on the minibatch; :param target_q: (B,) the targets y
-    """
-    first, second = slice(start, start + n_pairs), slice(start + n_pairs, start + 2 * n_pairs)
-    gap = target_q[first] - target_q[second]
-    return 0.5 * sum(F.mse_loss(q[first] - q[second], gap) for q in current)  # type: ignore[return-value]
 
 
 class EntropyTerms(NamedTuple):
@@ -159,74 +95,6 @@ def preassign_actor_loss(
     return loss.mean()
 
 
-def preassign_profit_loss(dist: MaskedCategorical, head: PointerHead, view: ObsView, n_entities: int) -> th.Tensor:
-    """Exact one-step improvement of the deterministic pre-assignment (implementation detail 14): for ``n_entities``
-    random free entities i of each state, the advantage A_ij = P(c^{i→j}) − P(c) of moving i from its argmax task to each
-    open task j, everyone else staying at the argmax c, where P is :func:`round_profit` (computed from the observation:
-    no env step, no critic); the loss is −Σ_j π_i(j|s) A_ij / σ_A (σ_A: the batch's standard deviation of A).
-
-    :param dist: the actor's distribution on ``view`` (with gradient)
-    :param head: the pointer actor, decoding deterministically
-    :param n_entities: entities moved per state
-    """
-    B, N, M = view.pair_cost.shape
-    with th.no_grad():
-        free = view.assignable
-        c = th.where(free, dist.get_actions(True), -1)  # (B, N)
-        # Random free entities per row: the top n of random keys, non-free entities last.
-        keys = th.rand(B, N, device=c.device)
-        who = th.topk(keys.masked_fill(~free, -1.0), min(n_entities, N), dim=1).indices  # (B, S)
-        moved = th.gather(free, 1, who)  # (B, S) the chosen entity is free
-        S = who.shape[1]
-        # Variants: row b, entity who[b, s], task j → (B, S, M, N) candidate vectors.
-        variants = c.view(B, 1, 1, N).repeat(1, S, M, 1)
-        tasks = th.arange(M, device=c.device).view(1, 1, M).expand(B, S, M)
-        variants.scatter_(3, who.view(B, S, 1, 1).expand(B, S, M, 1), tasks.unsqueeze(-1))
-        n_var = S * M
-        rep = ObsView(*(x.repeat_interleave(n_var, 0) for x in view))
-        profit = round_profit(head, rep, variants.view(B * n_var, N)).view(B, S, M)
-        base = round_profit(head, view, c).view(B, 1, 1)
-        valid = th.gather(view.valid, 1, who.unsqueeze(-1).expand(B, S, M)) & moved.unsqueeze(-1)
-        adv = (profit - base).masked_fill(~valid, 0.0)
-        scale = adv[valid].std() if int(valid.sum()) > 1 else adv.new_ones(())
-        adv = adv / scale.clamp_min(1e-6)
-    probs = th.gather(dist.probs, 1, who.unsqueeze(-1).expand(B, S, M))  # π_i(·|s) of the moved entities
-    per_entity = -(probs * adv).sum(-1)
-    return per_entity[moved].mean() if bool(moved.any()) else per_entity.sum() * 0.0
-
-
-class SearchLoss(NamedTuple):
-    loss: th.Tensor  # −mean over the improved states of log π(c* | s) = Σ_i log π_i(c*_i | s) (0 if none improved)
-    improved: th.Tensor  # share of the states where a sample beat the argmax pre-assignment
-    gain: th.Tensor  # mean P(c*) − P(c) over the states
-
-
-def preassign_search_loss(
-    dist: MaskedCategorical, head: PointerHead, view: ObsView, samples: int, temperature: float
-) -> SearchLoss:
-    """Distillation of a sampled search on the step's profit (implementation detail 16): per state, the argmax
-    pre-assignment c and ``samples`` − 1 joint pre-assignments drawn from π^(1/T) are decoded deterministically; where
-    the best of them, c*, has a higher profit P than c, the loss raises log π(c*|s) = Σ_i log π_i(c*_i|s), summed over
-    the free entities as the prior's KL is. A factorised actor's argmax moves one entity at a time under a gradient, a
-    sample moves many at once: c* can be a joint change that no single move improves on.
-
-    :param dist: the actor's distribution on ``view`` (with gradient)
-    :param head: the pointer actor, decoding deterministically
-    :param samples: K, pre-assignments per state including the argmax (1: the term is 0)
-    :param temperature: T of the sampling distribution (> 1: more entities move away from their argmax)
-    """
-    with th.no_grad():
-        found = sampled_search(dist, head, view, samples, temperature)
-        improved = found.profit > found.base
-        target = found.candidates
-        gain = (found.profit - found.base).mean()
-    free = view.assignable
-    log_p = th.gather(dist.log_probs, 2, target.clamp_min(0).unsqueeze(-1)).squeeze(-1)  # (B, N)
-    per_state = -(log_p * free).sum(1)
-    loss = per_state[improved].mean() if bool(improved.any()) else per_state.sum() * 0.0
-    return SearchLoss(loss, improved.float().mean(), gain)
-
-
 def ent_coef_loss(log_alpha: th.Tensor, entropy: th.Tensor, target: th.Tensor) -> th.Tensor:
     """log α·(H − H*): α grows while the entropy is below its target (SB3's SAC, per-entity or per-pick entropies)."""
     return (log_alpha * (entropy - target).detach()).mean()
@@ -272,8 +140,8 @@ def select_losses(
         n = len(rounds)
         view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
         pick_rank = pick_rank.repeat(n, 1, 1)
-    head = selector.head  # the critics and the prior are built with the same features (TAMPolicy's select_scarcity)
-    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank, head.scarcity)
+    head = selector.head
+    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank)
     if tf is None:
         return None
     M = pick_rank.shape[1]
@@ -314,7 +182,7 @@ class SelectSearchLoss(NamedTuple):
 
 
 def select_search_loss(
-    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float, method: str = "sample"
+    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float
 ) -> SelectSearchLoss:
     """Distillation of a select-stage search (implementation detail 18): per task of the stored first round, the best
     of its deterministic team and ``samples`` − 1 sampled teams by the task's profit (:func:`.select_search`); where it
@@ -323,16 +191,11 @@ def select_search_loss(
     :param candidates: (B, M, N) stored candidate sets of pre-assigned decisions
     :param samples: K, decodes per task including the deterministic one (1: the term is 0)
     :param temperature: T of the sampled decodes
-    :param method: ``"sample"``: the best of the K decodes; ``"exact"``: the exact most profitable cover of the task's
-        candidates instead (:func:`.cover_search`; ``samples`` and ``temperature`` are then unused)
     """
     (task_of,) = stored_rounds(candidates, preassign=True)
     head = selector.head
     with th.no_grad():
-        if method == "exact":
-            found = cover_search(head, view, task_of)
-        else:
-            found = select_search(head, view, task_of, samples, temperature)
+        found = select_search(head, view, task_of, samples, temperature)
         improved = found.profit > found.base
         has = candidates.any(-1) & view.task_mask
         gain = (found.profit - found.base)[has].mean() if bool(has.any()) else found.profit.new_zeros(())
@@ -353,7 +216,7 @@ def pick_log_probs(
     :param pick_rank: (B, M, N) step at which task j picks entity i (−1: not picked); every pick must be a valid choice
         of its step, as a decode's are
     """
-    tf = teacher_forced(view, task_of, pick_rank, head.scarcity)
+    tf = teacher_forced(view, task_of, pick_rank)
     if tf is None:
         return None
     logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)

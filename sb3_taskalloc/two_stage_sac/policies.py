@@ -27,18 +27,9 @@ from sb3_taskalloc.common.torch_layers import (
     PointerHead,
     parse_obs,
 )
-from sb3_taskalloc.common.utils import check_choices, check_counts
-from sb3_taskalloc.two_stage_sac.select_stage import (
-    Decision,
-    SelectSearchResult,
-    SelectState,
-    cover_search,
-    decode_round,
-    env_action_of,
-    exact_covers,
-    sampled_search,
-    select_search,
-)
+from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite
+from sb3_taskalloc.two_stage_sac.decoding import Decoder, get_decoding_strategy
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
 #: the pre-assign actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight
@@ -48,6 +39,12 @@ HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embe
 
 #: Default (κ, κ_s) of a rule-initialised policy (implementation detail 10): sampled decisions stay near the rule's argmax.
 RULE_LOGIT_SCALES = (100.0, 10.0)
+
+#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
+MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
+
+#: Training's decisions: samples at both stages.
+_SAMPLED = get_decoding_strategy("sampled")
 
 #: Keys of the observation that TAMPolicy reads (the ``TaskAlloc`` observation layout).
 OBS_KEYS = (
@@ -92,11 +89,10 @@ class TAMPolicy(BasePolicy):
         ``"random"``; only with ``preassign=False``
     :param encoder: ``"tam"`` (size-agnostic attention module) or ``"mlp"`` (the "W/o TAM" ablation, size-specific)
     :param mixer: ``"amix"`` or ``"global"`` (the "W/o AMIX" ablation: one MLP over the flattened state and c)
-    :param monotonic_mixer: QMIX-style non-negative mixing weights
-    :param hyper_bias: state-dependent AMIX bias
-    :param team_value: add the per-task value of the teams an assignment sends to the AMIX critic
-        (:class:`~sb3_taskalloc.common.mixers.TeamValue`, not in the paper): the critic then sees whether a candidate set
-        covers its task. ``False``: the paper's critic
+    :param mixer_kwargs: settings of the AMIX critic (:data:`MIXER_DEFAULTS`): ``monotonic``, QMIX-style
+        non-negative mixing weights; ``hyper_bias``, a state-dependent AMIX bias; ``team_value``, the per-task value
+        of the teams an assignment sends (:class:`~sb3_taskalloc.common.mixers.TeamValue`, not in the paper: the
+        critic then sees whether a candidate set covers its task; ``False``: the paper's critic)
     :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (not in the paper, where κ = 1): the
         inverse temperature of the pre-assignment. Pair costs of one entity differ by a few percent between tasks, so
         with κ = 1 the cost-greedy rule samples nearly uniform tasks; a larger κ keeps the sampled behaviour near the
@@ -105,49 +101,12 @@ class TAMPolicy(BasePolicy):
         detail 10), else 1 (a random start is no rule to stay near)
     :param select_logit_scale: κ_s, the same for the pointer actor's logits; ``None``: 10 with ``heuristic_init``,
         else 1 (the paper's)
-    :param select_pair_hidden: width of an MLP over each candidate's dynamic pair features and its task's state that
-        adds to the pointer actor's scores (not in the paper; 0: none): the interactions that the dot product and the
-        linear read-out cannot express, e.g. a candidate's coverage weighed by how much of the demand is left. It costs
-        one (batch × entities × width) tensor per decoding step. With ``heuristic_init`` its output layer starts at 0,
-        so the pointer starts at the rule
-    :param select_scarcity: the pointer actor and the select critics also read each candidate's unit cost with the
-        resources weighed by their scarcity among the task's candidates left (not in the paper;
-        :func:`.select_stage.select_features`): what a greedy cover needs to spend a scarce resource's suppliers first,
-        which the exact cover of a task's candidates does and the unit-cost rule does not. With ``heuristic_init`` their
-        weights start at 0, so the pointer starts at the rule
     :param rounds: pre-assign rounds per decision (not in the paper, where there is one): after each round, the
         entities the pointer did not pick pre-assign again among the open tasks that no round has tried yet, so a task
         whose candidates fell short no longer holds every entity that chose it. The stored decision, which the losses
         learn from, is the first round; the env action carries the teams of every round. Like ``rule_weights``, an
         env's setting of its zoo config: without pre-assignment (``preassign=False``), where tasks already pick in turn
         from one pool, it does not apply and is ignored
-    :param decision_samples: decision-time search (not in the paper; 1: off): a deterministic decision takes, for its
-        first round, the best by the step's profit of the argmax pre-assignment and ``decision_samples`` − 1 joint
-        pre-assignments sampled from π^(1/T) (:func:`.select_stage.sampled_search`, implementation detail 16), the
-        sampling decoding of attention models for routing. The samples come from a stream of the policy's own, seeded
-        at 0, so an evaluation is reproducible. Sampled decisions (training) do not search; ignored without
-        pre-assignment
-    :param decision_temperature: T of those samples
-    :param select_decision_samples: decision-time search of the teams (not in the paper; 1: off): in a deterministic
-        decision each task of every round takes the best, by its profit (reward on cover minus its team's pair costs),
-        of the pointer's argmax team and ``select_decision_samples`` − 1 teams it samples at
-        ``select_decision_temperature`` (:func:`.select_stage.select_search`, implementation detail 20), from the same
-        stream as ``decision_samples``. Sampled decisions (training) do not search; ignored without pre-assignment
-    :param select_decision_temperature: T of those sampled teams
-    :param select_decision_exact: in a deterministic decision each task of every round also weighs the exact most
-        profitable cover of its candidates (:func:`.select_stage.cover_search`: the per-step MILP's formulation on the
-        task's candidate pairs, one HiGHS solve per decision round on the CPU) and takes it where it is more profitable
-        than every decoded team (implementation detail 21). The pre-assignment stays the policy's; the teams are then
-        the best its candidates allow. Sampled decisions (training) do not search; ignored without pre-assignment
-    :param decision_exact_top: decision-time exact pre-assignment (not in the paper; 0: off): in a deterministic decision
-        each round pre-assigns by the exact most profitable cover (:func:`.select_stage.exact_covers`) of the pairs that
-        join each free entity to one of its ``decision_exact_top`` most probable tasks under the pre-assign actor, and
-        its teams are weighed as with ``select_decision_exact``; entities outside the cover stay free for the next
-        round, and the round has tried the tasks it covers and those of the argmax's candidate sets (implementation
-        detail 22). 1 decides as ``select_decision_exact``; larger values approach the per-step MILP. Each solve stops
-        at a node limit with the best cover found (:data:`.select_stage.EXACT_NODE_LIMIT`), so a decision is the same
-        on any machine (unless a solve reaches the safety time limit, :data:`.select_stage.EXACT_TIME_LIMIT`).
-        Exclusive with ``decision_samples``; sampled decisions (training) do not search; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
         their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
@@ -161,6 +120,9 @@ class TAMPolicy(BasePolicy):
     :param activation_fn: activation of the MLPs (paper: ReLU)
     :param optimizer_class: optimizer of every network
     :param optimizer_kwargs: extra optimizer arguments
+
+    How a deterministic decision is decoded (the argmax, a search, exact covers) is no parameter of the network: see
+    :attr:`decoder` and :mod:`~sb3_taskalloc.two_stage_sac.decoding`.
     """
 
     actor: PreAssignActor | None
@@ -181,21 +143,11 @@ class TAMPolicy(BasePolicy):
         task_order: Literal["sequential", "random"] | None = None,
         encoder: Literal["tam", "mlp"] = "tam",
         mixer: Literal["amix", "global"] = "amix",
-        monotonic_mixer: bool = False,
-        hyper_bias: bool = True,
-        team_value: bool = True,
+        mixer_kwargs: dict[str, bool] | None = None,
         logit_scale: float | None = None,
         select_logit_scale: float | None = None,
-        select_pair_hidden: int = 0,
-        select_scarcity: bool = False,
         n_critics: int = 2,
         rounds: int = 1,
-        decision_samples: int = 1,
-        decision_temperature: float = 2.0,
-        select_decision_samples: int = 1,
-        select_decision_temperature: float = 1.0,
-        select_decision_exact: bool = False,
-        decision_exact_top: int = 0,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
@@ -223,18 +175,15 @@ class TAMPolicy(BasePolicy):
                 "mixer": (mixer, tuple(MIXERS)),
             }
         )
-        check_counts(
-            dict(
-                hidden_dim=hidden_dim,
-                n_critics=n_critics,
-                rounds=rounds,
-                decision_samples=decision_samples,
-                select_decision_samples=select_decision_samples,
-            )
-        )
-        check_counts(dict(select_pair_hidden=select_pair_hidden, decision_exact_top=decision_exact_top), minimum=0)
-        self.select_pair_hidden = select_pair_hidden
-        self.select_scarcity = select_scarcity
+        check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds))
+        check_bools(dict(pair_features=pair_features, preassign=preassign, heuristic_init=heuristic_init))
+        if not isinstance(mixer_kwargs, dict | None):
+            raise ValueError(f"mixer_kwargs must be a mapping of {sorted(MIXER_DEFAULTS)}, got {mixer_kwargs!r}")
+        unknown = sorted(set(mixer_kwargs or {}) - set(MIXER_DEFAULTS))
+        if unknown:
+            raise ValueError(f"mixer_kwargs: unknown settings {unknown}; choose from {sorted(MIXER_DEFAULTS)}")
+        self.mixer_kwargs = {**MIXER_DEFAULTS, **(mixer_kwargs or {})}
+        check_bools({f"mixer_kwargs[{k!r}]": v for k, v in self.mixer_kwargs.items()})
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
         self.pair_features = pair_features
@@ -242,9 +191,6 @@ class TAMPolicy(BasePolicy):
         self.task_order = task_order
         self.encoder = encoder
         self.mixer = mixer
-        self.monotonic_mixer = monotonic_mixer
-        self.hyper_bias = hyper_bias
-        self.team_value = team_value
         #: Whether the pre-assign actor starts at the cost-greedy rule (_init_heuristic) rather than at random weights.
         self.preassign_rule = starts_at_rule(
             dict(heuristic_init=heuristic_init, preassign=preassign, encoder=encoder, pair_features=pair_features)
@@ -253,32 +199,13 @@ class TAMPolicy(BasePolicy):
             logit_scale = RULE_LOGIT_SCALES[0] if self.preassign_rule else 1.0
         if select_logit_scale is None:
             select_logit_scale = RULE_LOGIT_SCALES[1] if heuristic_init else 1.0
-        scales = {"logit_scale": logit_scale, "select_logit_scale": select_logit_scale}
-        scales["decision_temperature"] = decision_temperature
-        scales["select_decision_temperature"] = select_decision_temperature
-        for name, scale in scales.items():
-            if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {scale!r}")
-        if not isinstance(select_scarcity, bool):
-            raise ValueError(f"select_scarcity must be True or False, got {select_scarcity!r}")
-        if not isinstance(select_decision_exact, bool):
-            raise ValueError(f"select_decision_exact must be True or False, got {select_decision_exact!r}")
-        if decision_exact_top and decision_samples > 1:
-            raise ValueError(
-                f"decision_exact_top={decision_exact_top} and decision_samples={decision_samples} both choose the "
-                "pre-assignment at decision time: set one of them"
-            )
+        check_finite({"logit_scale": logit_scale, "select_logit_scale": select_logit_scale})
         self.logit_scale = float(logit_scale)
         self.select_logit_scale = float(select_logit_scale)
         self.n_critics = n_critics
         self.rounds = rounds
-        self.decision_samples = decision_samples
-        self.decision_temperature = float(decision_temperature)
-        self.select_decision_samples = select_decision_samples
-        self.select_decision_temperature = float(select_decision_temperature)
-        self.select_decision_exact = select_decision_exact
-        self.decision_exact_top = decision_exact_top
-        self._search_stream: th.Generator | None = None
+        #: How deterministic decisions are decoded (:mod:`.decoding`); not saved among the constructor parameters.
+        self.decoder: Decoder = get_decoding_strategy("argmax")
         self.heuristic_init = heuristic_init
         self.rule_weights = dict(rule_weights or {})
         if self.rule_weights:
@@ -357,15 +284,13 @@ class TAMPolicy(BasePolicy):
                 self.hidden_dim,
                 self.activation_fn,
                 logit_scale=self.select_logit_scale,
-                pair_hidden=self.select_pair_hidden,
-                scarcity=self.select_scarcity,
             )
         )
         self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
             return [
-                PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True, scarcity=self.select_scarcity)
+                PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True)
                 for _ in range(self.n_critics)
             ]
 
@@ -412,8 +337,6 @@ class TAMPolicy(BasePolicy):
         head.dyn.weight[0, UNIT_COST] = HEURISTIC_INIT["unit_cost"]
         head.dyn.bias.zero_()
         _scale_last_layer(head.task, gain)
-        if head.pair is not None:
-            _scale_last_layer(head.pair, gain)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -427,21 +350,11 @@ class TAMPolicy(BasePolicy):
                 task_order=None if self.preassign else self.task_order,
                 encoder=self.encoder,
                 mixer=self.mixer,
-                monotonic_mixer=self.monotonic_mixer,
-                hyper_bias=self.hyper_bias,
-                team_value=self.team_value,
+                mixer_kwargs=dict(self.mixer_kwargs),
                 logit_scale=self.logit_scale,
                 select_logit_scale=self.select_logit_scale,
-                select_pair_hidden=self.select_pair_hidden,
-                select_scarcity=self.select_scarcity,
                 n_critics=self.n_critics,
                 rounds=self.rounds,
-                decision_samples=self.decision_samples,
-                decision_temperature=self.decision_temperature,
-                select_decision_samples=self.select_decision_samples,
-                select_decision_temperature=self.select_decision_temperature,
-                select_decision_exact=self.select_decision_exact,
-                decision_exact_top=self.decision_exact_top,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
                 activation_fn=self.activation_fn,
@@ -506,52 +419,44 @@ class TAMPolicy(BasePolicy):
         """Both stages on a batch of observations (paper Algorithm 1).
 
         :param view: parsed observations
-        :param deterministic: argmax at both stages (else sample)
+        :param deterministic: decode by :attr:`decoder` (the argmax unless set otherwise); else sample, as training does
         :param uniform: uniform random choices at both stages (warm-up exploration)
         :param rounds_out: when given, every pre-assign round appends its view and candidate sets ``task_of`` (B, N)
             to it: the states the select stage decoded, which the first-round decision alone does not record
         """
         if self.preassign:
-            return self._decide_preassigned(view, deterministic, uniform, rounds_out)
+            decoder = self.decoder if deterministic and not uniform else _SAMPLED
+            return self._decide_preassigned(view, decoder, uniform, rounds_out)
         if rounds_out is not None:
             raise ValueError("rounds_out needs a pre-assigning policy: without pre-assignment the tasks share one pool")
-        return self._decide_pooled(view, deterministic, uniform)
+        # Without pre-assignment the tasks share one pool, so the decoders' searches do not apply: argmax or samples.
+        return self._decide_pooled(view, deterministic and self.decoder.deterministic, uniform)
 
     def _decide_preassigned(
-        self, view: ObsView, deterministic: bool, uniform: bool, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None
+        self, view: ObsView, decoder: Decoder, uniform: bool, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None
     ) -> Decision:
-        """Stage 1 (Algorithm 2): every free entity samples one open task (candidate sets C_j); stage 2 (Algorithm 3):
-        every task decodes its team from its own candidates, all in one round. With ``rounds`` > 1 the entities left
-        over pre-assign again among the tasks not tried yet (see ``rounds``); the decision records the first round."""
+        """Stage 1 (Algorithm 2): every free entity takes one open task (candidate sets C_j); stage 2 (Algorithm 3):
+        every task decodes its team from its own candidates, all in one round, both as ``decoder`` decides. With
+        ``rounds`` > 1 the entities left over pre-assign again among the tasks not tried yet (see ``rounds``); the
+        decision records the first round."""
         assert self.actor is not None
         B, N, M = view.pair_cost.shape
         tasks = th.arange(M, device=view.pair_cost.device).view(1, M, 1)
         first: Decision | None = None
         env_action = th.full((B, N), M, dtype=th.long, device=view.pair_cost.device)
         for r in range(self.rounds):
-            argmax_tried: th.Tensor | None = None  # with decision_exact_top: the argmax's tasks, tried as in an argmax round
             if uniform:
                 dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid)
+                c, also_tried = th.where(view.assignable, dist.get_actions(False), -1), None
             else:
-                dist = self.actor(view)
-            if r == 0 and deterministic and not uniform and self.decision_samples > 1:
-                found = sampled_search(
-                    dist, self.selector.head, view, self.decision_samples, self.decision_temperature, self._stream(view)
-                )
-                c = found.candidates
-            elif deterministic and not uniform and self.decision_exact_top:
-                c, argmax = self._exact_top_preassign(view, dist)
-                argmax_tried = (argmax.unsqueeze(1) == tasks).any(-1)
-            else:
-                c = th.where(view.assignable, dist.get_actions(deterministic), -1)
+                c, also_tried = decoder.preassign(self, view, self.actor(view), first_round=r == 0)
             if rounds_out is not None:
                 rounds_out.append((view, c))
-            if deterministic and not uniform and (self.select_decision_samples > 1 or self._exact_teams):
-                teams = self._search_teams(view, c)
-                rank, kept = teams.rank, teams.profit > 0  # a task's profit is positive exactly where its team is kept
-            else:
-                st = self.select_round(view, c, deterministic, uniform)
+            if uniform:
+                st = decode_round(None, view, c, deterministic=False, uniform=True)
                 rank, kept = st.rank, st.kept()
+            else:
+                rank, kept = decoder.teams(self, view, c)
             candidates = c.unsqueeze(1) == tasks
             action = env_action_of(rank, kept)
             if first is None:
@@ -559,48 +464,12 @@ class TAMPolicy(BasePolicy):
             env_action = th.where(action < M, action, env_action)
             if r + 1 == self.rounds:  # no round follows: skip the next view and its device sync
                 break
-            tried = candidates.any(-1) if argmax_tried is None else candidates.any(-1) | argmax_tried
+            tried = candidates.any(-1) if also_tried is None else candidates.any(-1) | also_tried
             view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
             if not bool(view.assignable.any()):
                 break
         assert first is not None
         return first._replace(env_action=env_action)
-
-    def _search_teams(self, view: ObsView, task_of: th.Tensor) -> SelectSearchResult:
-        """Each task's most profitable team of the decision-time team search: the pointer's argmax team, its sampled
-        teams (``select_decision_samples``) and, with ``select_decision_exact``, the exact cover of its candidates;
-        the earlier of equally profitable teams wins (implementation details 20 and 21)."""
-        head = self.selector.head
-        found = select_search(
-            head, view, task_of, self.select_decision_samples, self.select_decision_temperature, self._stream(view)
-        )
-        return cover_search(head, view, task_of, against=found) if self._exact_teams else found
-
-    @property
-    def _exact_teams(self) -> bool:
-        """Whether deterministic decisions weigh each task's exact cover (``select_decision_exact``, and
-        ``decision_exact_top``, whose pre-assignment is such a cover)."""
-        return self.select_decision_exact or self.decision_exact_top > 0
-
-    def _exact_top_preassign(self, view: ObsView, dist: MaskedCategorical) -> tuple[th.Tensor, th.Tensor]:
-        """The pre-assignment of ``decision_exact_top``: (B, N) the exact most profitable cover of the pairs that join
-        each free entity to one of its ``decision_exact_top`` most probable tasks under π (:func:`.exact_covers`;
-        entities outside the cover are no task's candidates and stay free for the next round), and (B, N) each
-        assignable entity's argmax task (−1 otherwise), whose tasks the round counts as tried (implementation detail 22)."""
-        M = view.task_mask.shape[1]
-        # A stable sort breaks ties between equally probable tasks toward the lower slot, as the argmax does, so its
-        # first column is the argmax and k = 1 keeps the argmax's own tasks (topk's order among ties is unspecified).
-        order = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices
-        chosen = th.zeros_like(view.valid).scatter_(-1, order[..., : min(self.decision_exact_top, M)], True)
-        covers = exact_covers(view, chosen & view.valid & view.assignable.unsqueeze(-1))
-        return covers, th.where(view.assignable, order[..., 0], -1)
-
-    def _stream(self, view: ObsView) -> th.Generator:
-        """The random stream of the decision-time search, on the observations' device, seeded at 0 when first used."""
-        device = view.pair_cost.device
-        if self._search_stream is None or self._search_stream.device != device:
-            self._search_stream = th.Generator(device=device).manual_seed(0)
-        return self._search_stream
 
     def _decide_pooled(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
         """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the
@@ -648,8 +517,9 @@ def _flat_scorer(policy: TAMPolicy, scale: float) -> nn.Module:
 
 def _amix_critic(policy: TAMPolicy) -> AMIXCritic:
     _, _, Fe, Ft, K = policy.dims
-    mixer = AMIXMixer(Fe, Ft, policy.hidden_dim, policy.monotonic_mixer, policy.hyper_bias, policy.activation_fn)
-    team = TeamValue(Ft, K, policy.hidden_dim, policy.activation_fn) if policy.team_value else None
+    settings = policy.mixer_kwargs
+    mixer = AMIXMixer(Fe, Ft, policy.hidden_dim, settings["monotonic"], settings["hyper_bias"], policy.activation_fn)
+    team = TeamValue(Ft, K, policy.hidden_dim, policy.activation_fn) if settings["team_value"] else None
     return AMIXCritic(policy._scorer(scale=1.0), mixer, team)  # critics unscaled: Q-values need no temperature
 
 

@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import torch as th
 
-from sb3_taskalloc.common.distributions import MaskedCategorical, segment_pick, segment_sum
+from sb3_taskalloc.common.distributions import segment_pick, segment_sum
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead, symlog
 
 #: A task counts as covered (internally) when every remaining demand is at most this (the env's tolerance is larger).
@@ -128,8 +128,6 @@ def select_features(
     cost: th.Tensor,
     npick: th.Tensor,
     useful: tuple[th.Tensor, th.Tensor] | None = None,
-    choices: th.Tensor | None = None,
-    scarcity: bool = False,
 ) -> tuple[th.Tensor, th.Tensor]:
     """Inputs of the pointer heads for one or many (leading dims) select-stage states.
 
@@ -138,18 +136,10 @@ def select_features(
     :param pc_own: (B, N) pair cost of each entity for that task
     :param rem: (..., B, M, K) remaining demand; :param cost: (..., B, M) cost of the picks; :param npick: (..., B, M)
     :param useful: :func:`useful_supply` of (``task_of``, ``rem``) when already computed
-    :param choices: (..., B, N) the candidates still to choose from (:func:`choosable`), which the scarcity weights
-        are taken over; None: every candidate that covers some of its task's remaining demand
-    :param scarcity: append the scarcity-weighted unit costs (for a pointer head with ``scarcity``; the other heads
-        skip their cost)
     :return: task states (..., B, M, K + 4) and dynamic entity features (..., B, N, SELECT_DYN): coverage of the
         remaining demand, symlog pair cost, symlog margin m (reward − cost so far − pair cost), relu(m), waste share of
         the supply, whether the entity alone covers the remaining demand, and symlog of its unit cost (pair cost per
-        unit of the remaining demand it covers), a fixed basis that the pointer weighs linearly; with ``scarcity``
-        (SELECT_DYN + SELECT_SCARCITY columns) then the unit cost with each resource weighed by its scarcity w_k and by
-        w_k², where w_k = (remaining demand of k) / (what the task's choices still offer of k) ∈ [0, 1] is 1 where
-        every choice's k is needed: pair cost per unit of scarce demand covered, the key of a greedy cover that spends
-        the scarce resource's suppliers first
+        unit of the remaining demand it covers), a fixed basis that the pointer weighs linearly
     """
     demand_sum = view.demand.sum(-1).clamp_min(1e-6)
     reward = view.reward.expand_as(cost)
@@ -172,15 +162,6 @@ def select_features(
     unit_cost = symlog(pc_own / useful_i.clamp_min(1e-6))  # the greedy allocator's key: cost per unit of demand covered
     covers = (cov >= 1 - 1e-6).float()
     columns = [cov, symlog(pc_own).expand_as(cov), m, th.relu(m), waste, covers, unit_cost]
-    if scarcity:
-        # Scarcity of each resource among the choices left: w_jk = rem_jk / Σ_{i ∈ choices of j} min(s_ik, rem_jk).
-        per_resource = th.minimum(view.supply, rem_i)  # (..., B, N, K)
-        if choices is None:
-            choices = choosable(view, task_of, task_of >= 0, rem, (useful_i, rem_i))
-        offered = segment_sum(choices.unsqueeze(-1) * per_resource, idx, rem.shape[-2], vector=True)  # (..., B, M, K)
-        w = (rem / offered.clamp_min(1e-6)).clamp_max(1.0)  # ≤ 1 wherever the task is still winnable
-        w_i = th.gather(w, -2, idx.unsqueeze(-1).expand(*idx.shape, w.shape[-1]))
-        columns += [symlog(pc_own / (w_i**p * per_resource).sum(-1).clamp_min(1e-6)) for p in (1, 2)]
     return task_state, th.stack(columns, dim=-1)
 
 
@@ -192,15 +173,13 @@ class SelectState:
 
     :param view: the observations
     :param task_of: (B, N) task whose candidate entity i is in this round (−1: none)
-    :param scarcity: the features carry the scarcity-weighted unit costs (for a pointer head with ``scarcity``)
     """
 
-    def __init__(self, view: ObsView, task_of: th.Tensor, scarcity: bool = False) -> None:
+    def __init__(self, view: ObsView, task_of: th.Tensor) -> None:
         B, N = task_of.shape
         M = view.task_mask.shape[1]
         self.view = view
         self.task_of = task_of
-        self.scarcity = scarcity
         self.slots = th.arange(M, device=task_of.device)
         self.seg = task_of.unsqueeze(1) == self.slots.view(1, M, 1)  # (B, M, N) candidates of task j
         self.avail = task_of >= 0  # (B, N) candidates not picked yet
@@ -215,11 +194,8 @@ class SelectState:
         self.active = view.task_mask & still_winnable(view, task_of, self.choosable, self.pc_own, self.rem, self.cost)
 
     def features(self) -> tuple[th.Tensor, th.Tensor]:
-        """Task states (B, M, K + 4) and entity dynamic features (B, N, SELECT_DYN (+ SELECT_SCARCITY)) for the
-        pointer heads."""
-        return select_features(
-            self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick, self.useful, self.choosable, self.scarcity
-        )
+        """Task states (B, M, K + 4) and entity dynamic features (B, N, SELECT_DYN) for the pointer heads."""
+        return select_features(self.view, self.task_of, self.pc_own, self.rem, self.cost, self.npick, self.useful)
 
     def choice_mask(self) -> th.Tensor:
         """(B, M, N) entities task j may pick now."""
@@ -273,7 +249,7 @@ def decode_round(
     :param temperature: T of sampled picks, drawn from softmax(logits / T)
     :param generator: the random stream of sampled picks (None: torch's global one)
     """
-    st = SelectState(view, task_of, scarcity=head is not None and head.scarcity)
+    st = SelectState(view, task_of)
     B, M, N = st.seg.shape
     seg = task_of.clamp_min(0)
     d = None if head is None or uniform else head.embed_entities(view)
@@ -306,181 +282,6 @@ def task_profit(st: SelectState) -> th.Tensor:
     return st.kept() * (st.view.reward - st.cost)
 
 
-class SelectSearchResult(NamedTuple):
-    """Each task's best team of a select-stage search (:func:`select_search`)."""
-
-    rank: th.Tensor  # (B, M, N) pick steps of each task's best decode (−1: not picked)
-    profit: th.Tensor  # (B, M) its profit
-    base: th.Tensor  # (B, M) the profit of the deterministic decode
-
-
-def select_search(
-    head: PointerHead,
-    view: ObsView,
-    task_of: th.Tensor,
-    samples: int,
-    temperature: float,
-    generator: th.Generator | None = None,
-) -> SelectSearchResult:
-    """Per task, the best of the deterministic decode and ``samples`` − 1 sampled decodes of its team, by the task's
-    profit (:func:`task_profit`, the select stage's return: reward on cover minus the pair costs); the deterministic
-    decode wins ties (implementation detail 18). Candidate sets are disjoint, so the tasks decode independently and
-    their best teams together form one decision.
-
-    :param head: the pointer actor
-    :param task_of: (B, N) task each entity is a candidate of (−1: none)
-    :param samples: K, decodes per task including the deterministic one (1: that one alone)
-    :param temperature: T of the sampled decodes (> 1: picks further from the argmax)
-    :param generator: the random stream of the sampled decodes (None: torch's global one)
-    """
-    base = decode_round(head, view, task_of, deterministic=True)
-    p0 = task_profit(base)
-    if samples <= 1:
-        return SelectSearchResult(base.rank, p0, p0)
-    (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
-    rep = ObsView(*(x.repeat_interleave(S, 0) for x in view))
-    st = decode_round(head, rep, task_of.repeat_interleave(S, 0), False, temperature=temperature, generator=generator)
-    profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first
-    best = profit.argmax(1)  # (B, M), the first maximum
-    ranks = th.cat([base.rank.unsqueeze(1), st.rank.view(B, S, M, N)], 1)
-    rank = th.gather(ranks, 1, best.view(B, 1, M, 1).expand(B, 1, M, N)).squeeze(1)
-    return SelectSearchResult(rank, th.gather(profit, 1, best.unsqueeze(1)).squeeze(1), p0)
-
-
-# The exact searches stop by work, not by the clock, so that a decision or a label does not depend on the machine's speed
-# or load: a node limit under which HiGHS proves nearly every step cover optimal (README, "A deterministic stop for the
-# exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
-EXACT_NODE_LIMIT = 1000
-EXACT_TIME_LIMIT = 30.0
-
-
-def exact_covers(
-    view: ObsView,
-    allowed: th.Tensor,
-    node_limit: int = EXACT_NODE_LIMIT,
-    time_limit: float = EXACT_TIME_LIMIT,
-    by_task: bool = True,
-) -> th.Tensor:
-    """(B, N) the task each entity serves in the exact most profitable cover of the ``allowed`` pairs (−1: none):
-    :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone, one
-    HiGHS solve per batch row on the CPU. Where each entity may serve one task at most (the candidates of a
-    pre-assignment) the problem separates by task, and each task's team is
-    :func:`~sb3_taskalloc.baselines.milp.max_profit_team`'s (branch and bound, HiGHS where it runs long).
-
-    :param allowed: (B, N, M) bool pairs that may be assigned
-    :param node_limit: HiGHS node limit per solve (a batch row, or a task whose branch and bound ran long); the best
-        cover found is used when it is reached (a deterministic stop: the cover is the same on any machine)
-    :param time_limit: HiGHS time limit per solve (seconds), a safety net: where it binds, the cover depends on the
-        machine's speed and load
-    :param by_task: solve task by task where the pairs separate (False: one HiGHS solve per batch row always, the
-        reference the benchmark ``python -m sb3_taskalloc.bench labels`` times it against)
-    """
-    import numpy as np
-
-    from sb3_taskalloc.baselines.milp import max_profit_cover, max_profit_team
-
-    tensors = (view.supply, view.demand, view.reward, view.pair_cost)
-    supply, demand, reward, cost = (x.detach().double().cpu().numpy() for x in tensors)
-    pairs = allowed.cpu().numpy()
-    members = np.full(pairs.shape[:2], -1, dtype=np.int64)
-    if by_task and (pairs.sum(-1) <= 1).all():
-        for b, j in zip(*np.nonzero(pairs.any(1)), strict=True):
-            ents = np.flatnonzero(pairs[b, :, j])
-            team = max_profit_team(supply[b, ents], demand[b, j], reward[b, j], cost[b, ents, j], time_limit, node_limit)
-            members[b, ents[team]] = j
-        return th.as_tensor(members, device=allowed.device)
-    for b in range(pairs.shape[0]):
-        ents, tasks = np.flatnonzero(pairs[b].any(1)), np.flatnonzero(pairs[b].any(0))
-        if len(ents) == 0:
-            continue
-        x, _, _ = max_profit_cover(
-            supply[b, ents],
-            demand[b, tasks],
-            reward[b, tasks],
-            cost[b][np.ix_(ents, tasks)],
-            pairs[b][np.ix_(ents, tasks)],
-            time_limit=time_limit,
-            node_limit=node_limit,
-        )
-        e, t = np.nonzero(x)
-        members[b, ents[e]] = tasks[t]
-    return th.as_tensor(members, device=allowed.device)
-
-
-def cover_search(
-    head: PointerHead,
-    view: ObsView,
-    task_of: th.Tensor,
-    node_limit: int = EXACT_NODE_LIMIT,
-    time_limit: float = EXACT_TIME_LIMIT,
-    against: SelectSearchResult | None = None,
-) -> SelectSearchResult:
-    """Per task, the better of the teams ``against`` (default: the deterministic decode) and the exact most profitable
-    cover of its candidates (:func:`exact_covers` on the candidate pairs alone), by the task's profit
-    (:func:`task_profit`); the teams ``against`` win ties (implementation detail 18). The cover's team is decoded by the
-    pointer among its members alone, so its pick order is the pointer's own and a distillation of it teaches which
-    entities to pick, not an order.
-
-    :param head: the pointer actor
-    :param task_of: (B, N) task each entity is a candidate of (−1: none)
-    :param node_limit: HiGHS node limit per batch row (:func:`exact_covers`)
-    :param time_limit: HiGHS time limit per batch row (seconds), a safety net (:func:`exact_covers`)
-    :param against: an earlier search's teams on the same candidates (:func:`select_search`), so the deterministic
-        decode is not decoded twice
-    """
-    if against is None:
-        base = decode_round(head, view, task_of, deterministic=True)
-        p0 = task_profit(base)
-        against = SelectSearchResult(base.rank, p0, p0)
-    M = view.task_mask.shape[1]
-    allowed = task_of.unsqueeze(-1) == th.arange(M, device=task_of.device)
-    cover = decode_round(head, view, exact_covers(view, allowed, node_limit, time_limit), deterministic=True)
-    p1 = task_profit(cover)
-    better = p1 > against.profit
-    return SelectSearchResult(
-        th.where(better.unsqueeze(-1), cover.rank, against.rank), th.where(better, p1, against.profit), against.base
-    )
-
-
-class SearchResult(NamedTuple):
-    candidates: th.Tensor  # (B, N) the best pre-assignment found (task per free entity, −1 otherwise)
-    profit: th.Tensor  # (B,) its step profit
-    base: th.Tensor  # (B,) the step profit of the argmax pre-assignment
-
-
-def sampled_search(
-    dist: MaskedCategorical,
-    head: PointerHead,
-    view: ObsView,
-    samples: int,
-    temperature: float,
-    generator: th.Generator | None = None,
-) -> SearchResult:
-    """The best of the argmax pre-assignment and ``samples`` − 1 joint pre-assignments drawn from π^(1/T), by the step's
-    profit (:func:`round_profit`), all decoded in one batched pass; the argmax wins ties (implementation detail 16).
-
-    :param dist: the pre-assign actor's distribution on ``view``
-    :param head: the pointer actor, decoding deterministically
-    :param samples: K, pre-assignments per state including the argmax (1: the argmax alone)
-    :param temperature: T of the samples (> 1: more entities leave their argmax)
-    :param generator: the random stream of the samples (None: torch's global one)
-    """
-    B, N = view.assignable.shape
-    free = view.assignable
-    c = th.where(free, dist.get_actions(True), -1)  # (B, N)
-    if samples <= 1:
-        base = round_profit(head, view, c)
-        return SearchResult(c, base, base)
-    probs = th.softmax(dist.logits / temperature, -1).reshape(B * N, -1)
-    drawn = th.multinomial(probs, samples - 1, replacement=True, generator=generator).view(B, N, samples - 1)
-    cs = th.cat([c.unsqueeze(1), th.where(free.unsqueeze(1), drawn.transpose(1, 2), -1)], 1)  # (B, K, N), the argmax first
-    rep = ObsView(*(x.repeat_interleave(samples, 0) for x in view))
-    profit = round_profit(head, rep, cs.reshape(B * samples, N)).view(B, samples)
-    best = profit.argmax(1)  # the first maximum: the argmax itself where nothing beats it
-    rows = th.arange(B, device=c.device)
-    return SearchResult(cs[rows, best], profit[rows, best], profit[:, 0])
-
-
 class TeacherForcedRound(NamedTuple):
     """Every select-stage transition of one decoding round of stored pick orders, with time as a leading dimension
     (T steps); the tensors are per entity (T, B, N) or per task (T, B, M), never (T, B, M, N)."""
@@ -493,11 +294,11 @@ class TeacherForcedRound(NamedTuple):
     reward: th.Tensor  # (T, B, M)
     done: th.Tensor  # (T, B, M)
     task_state: th.Tensor  # (T, B, M, K + 4) pointer inputs before the pick
-    dyn: th.Tensor  # (T, B, N, SELECT_DYN (+ SELECT_SCARCITY))
+    dyn: th.Tensor  # (T, B, N, SELECT_DYN)
 
 
 def teacher_forced(
-    view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, scarcity: bool = False
+    view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor
 ) -> TeacherForcedRound | None:
     """All states and transitions of a stored decoding round at once.
 
@@ -506,7 +307,6 @@ def teacher_forced(
 
     :param task_of: (B, N) task each entity was a candidate of in this round (−1: none)
     :param pick_rank: (B, M, N) step at which task j picked entity i (−1: not picked)
-    :param scarcity: the features carry the scarcity-weighted unit costs (for pointer heads with ``scarcity``)
     :return: the round's transitions, or None when no task picked anything
     """
     cand = task_of >= 0
@@ -533,9 +333,7 @@ def teacher_forced(
     choices_after = choosable(view, task_of, avail_after, rem_after)
     mask = choices & th.gather(valid, -1, seg.expand(steps, -1, -1))  # (T, B, N) choices of the picking tasks
     reward, done, _ = transition(view, task_of, valid, pc, rem_after, pc_cum, choices_after, pc_own)
-    task_state, dyn = select_features(
-        view, task_of, pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful, choices, scarcity
-    )
+    task_state, dyn = select_features(view, task_of, pc_own, rem, pc_cum - pc, n_cum - valid.float(), useful)
     return TeacherForcedRound(task_of, seg, pf, valid, mask, reward, done, task_state, dyn)
 
 

@@ -1,0 +1,177 @@
+"""Select-stage DAgger (implementation detail 19): the pointer learns the exact most profitable cover of its candidates
+on the states the deployed policy reaches. :meth:`.TwoStageSAC.distill_select` runs it; :class:`.SelectDAggerCallback`
+runs it when ``learn`` ends.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.base_class import maybe_make_env
+from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.vec_env import VecEnv
+from tqdm.auto import tqdm
+
+import sb3_taskalloc.two_stage_sac.losses as losses
+from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.common.utils import check_choices, check_counts, check_finite
+from sb3_taskalloc.two_stage_sac.policies import check_spaces
+from sb3_taskalloc.two_stage_sac.search import cover_search
+from sb3_taskalloc.two_stage_sac.updates import optimizer_step
+
+if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
+
+
+class _CoverLabel(NamedTuple):
+    """One decoding round labelled for :meth:`TwoStageSAC.distill_select` (a batch row of one)."""
+
+    view: ObsView
+    task_of: th.Tensor  # (1, N) the round's candidate sets
+    rank: th.Tensor  # (1, M, N) each task's labelled team in pick order
+    labelled: th.Tensor  # (1, M) tasks whose team is a label
+
+
+def check_distill_select(
+    iterations: int, episodes: int, epochs: int, learning_rate: float, batch_size: int, imitation: str
+) -> None:
+    """A clear error for the first bad argument of :meth:`TwoStageSAC.distill_select` (named as there), so that a
+    schedule that runs it after training (:class:`.SelectDAggerCallback`) can refuse it before training."""
+    check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
+    check_choices({"imitation": (imitation, ("sequence", "set"))})
+    check_finite({"learning_rate": learning_rate})
+
+
+def distill_select(
+    model: TwoStageSAC,
+    env: GymEnv | str,
+    iterations: int = 4,
+    episodes: int = 10,
+    epochs: int = 8,
+    learning_rate: float = 1e-3,
+    batch_size: int = 32,
+    imitation: str = "sequence",
+    seed: int | None = None,
+    progress_bar: bool = False,
+    callback: Callable[[dict[str, float]], bool | None] | None = None,
+) -> list[dict[str, float]]:
+    """Teach the pointer the exact most profitable cover of its candidates by DAgger (implementation detail 19).
+
+    Each iteration runs the deterministic policy for ``episodes`` episodes on ``env``, labels every decoding round
+    it met (every pre-assign round of every step) with each task's better team of its deterministic decode and the
+    exact cover of its candidates (:func:`.search.cover_search`), and fits the pointer alone, by
+    ``epochs`` passes of Adam over every label gathered so far, to the labelled teams (teacher-forced
+    log-likelihood). The pre-assign actor, the critics and the replay buffer are untouched; ``learn`` may go on
+    afterwards.
+
+    :param env: the env (or env id) of the rollouts; a VecEnv runs its copies in one batched decision
+    :param iterations: rollout-label-fit iterations
+    :param episodes: episodes rolled out per iteration (counted over all copies of a VecEnv)
+    :param epochs: passes over the labels per iteration
+    :param learning_rate: Adam's step size
+    :param batch_size: decoding rounds per gradient step
+    :param imitation: ``"sequence"``: the likelihood of each labelled pick in the label's order; ``"set"``: of
+        picking any member of the cover not picked yet (:func:`.losses.cover_imitation_loss`)
+    :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
+    :param progress_bar: show the rollout episodes with tqdm
+    :param callback: called with each iteration's figures after its fit (an evaluation, a checkpoint); ``False``
+        stops DAgger there, as a callback's ``False`` stops ``learn``
+    :return: per iteration: the rollouts' mean return and env steps, the rounds met and the tasks labelled, the
+        share of the tasks with candidates whose exact cover beats the deterministic team and the mean profit gain
+        over those tasks, the last epoch's mean loss
+    """
+    model.check_distillable()
+    check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)
+    vec_env = model._wrap_env(maybe_make_env(env, model.verbose), model.verbose)
+    check_spaces(vec_env.observation_space, vec_env.action_space)
+    if vec_env.observation_space != model.observation_space:
+        model.policy.check_transfer(vec_env.observation_space)  # type: ignore[arg-type]
+    if seed is not None:
+        vec_env.seed(seed)
+    optimizer = th.optim.Adam(model.policy.selector.head.parameters(), lr=learning_rate)
+    rng = np.random.default_rng(seed)
+    labels: list[_CoverLabel] = []
+    history: list[dict[str, float]] = []
+    obs = vec_env.reset()
+    with tqdm(total=iterations * episodes, desc="select-stage DAgger", disable=not progress_bar) as bar:
+        for it in range(iterations):
+            obs, stats = _label_rollouts(model, vec_env, obs, episodes, labels, bar.update)
+            stats["loss"] = _fit_labels(model, labels, optimizer, epochs, batch_size, rng, imitation == "set")
+            history.append({"iteration": float(it + 1), **stats})
+            if model.verbose >= 1:
+                print(f"select-stage DAgger {history[-1]}")
+            if callback is not None and callback(history[-1]) is False:
+                break
+    return history
+
+def _label_rollouts(
+    model: TwoStageSAC, vec_env: VecEnv, obs: Any, episodes: int, labels: list[_CoverLabel], done_episode: Any
+) -> tuple[Any, dict[str, float]]:
+    """DAgger's data (:meth:`distill_select`): ``episodes`` episodes of the deterministic policy, every decoding
+    round labelled with each task's better team of its decode and the exact cover (:func:`.cover_search`); each
+    batch row with a labelled task joins ``labels``. :return: the last observation, and the rollouts' figures"""
+    model.policy.set_training_mode(False)
+    head = model.policy.selector.head
+    returns: list[float] = []
+    running = np.zeros(vec_env.num_envs)
+    totals = dict.fromkeys(("steps", "rounds", "tasks", "labelled_tasks", "improved", "gain"), 0.0)
+    while len(returns) < episodes:
+        rounds: list[tuple[ObsView, th.Tensor]] = []
+        with th.inference_mode():
+            view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
+            action = model.policy.decide(view, deterministic=True, rounds_out=rounds).env_action
+            for round_view, task_of in rounds:
+                found = cover_search(head, round_view, task_of)
+                slots = th.arange(found.profit.shape[1], device=task_of.device).view(1, -1, 1)
+                has = (task_of.unsqueeze(1) == slots).any(-1)  # (B, M) tasks with candidates
+                labelled = has & (found.profit > 0)  # a kept team: an abandoned decode teaches nothing
+                totals["rounds"] += int(has.any(-1).sum())
+                totals["tasks"] += int(has.sum())
+                totals["labelled_tasks"] += int(labelled.sum())
+                totals["improved"] += int((has & (found.profit > found.base)).sum())
+                totals["gain"] += float((found.profit - found.base)[has].sum())
+                for b in th.nonzero(labelled.any(-1)).flatten().tolist():
+                    rows = slice(b, b + 1)
+                    view_row = ObsView(*(x[rows].clone() for x in round_view))
+                    labels.append(_CoverLabel(view_row, task_of[rows].clone(), found.rank[rows].clone(), labelled[rows]))
+        obs, reward, done, _ = vec_env.step(action.cpu().numpy())
+        totals["steps"] += vec_env.num_envs
+        running += reward
+        for k in np.flatnonzero(done):
+            if len(returns) < episodes:
+                returns.append(float(running[k]))
+                done_episode(1)
+            running[k] = 0.0
+    tasks = max(totals.pop("tasks"), 1.0)
+    shares = {"improved": totals.pop("improved") / tasks, "gain": totals.pop("gain") / tasks}
+    return obs, {"mean_return": float(np.mean(returns)), **totals, **shares}
+
+def _fit_labels(
+    model: TwoStageSAC,
+    labels: list[_CoverLabel],
+    optimizer: th.optim.Optimizer,
+    epochs: int,
+    batch_size: int,
+    rng: np.random.Generator,
+    as_set: bool = False,
+) -> float:
+    """``epochs`` passes of ``optimizer`` over ``labels`` in random minibatches of the pointer's teacher-forced
+    log-likelihood (:func:`.losses.cover_imitation_loss`). :return: the last pass's mean loss"""
+    head = model.policy.selector.head
+    model.policy.set_training_mode(True)
+    epoch_losses: list[float] = []
+    for _ in range(epochs):
+        order = rng.permutation(len(labels))
+        epoch_losses = []
+        for start in range(0, len(order), batch_size):
+            batch = [labels[i] for i in order[start : start + batch_size]]
+            view = ObsView(*(th.cat(x, 0) for x in zip(*(b.view for b in batch), strict=True)))
+            task_of, rank, labelled = (th.cat([getattr(b, k) for b in batch], 0) for k in ("task_of", "rank", "labelled"))
+            epoch_losses.append(
+                optimizer_step(optimizer, losses.cover_imitation_loss(head, view, task_of, rank, labelled, as_set))
+            )
+    model.policy.set_training_mode(False)
+    return float(np.mean(epoch_losses)) if epoch_losses else float("nan")

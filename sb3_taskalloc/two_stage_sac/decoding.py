@@ -1,0 +1,215 @@
+"""Decoding strategies: how a trained :class:`~sb3_taskalloc.TAMPolicy` turns its two stages into one decision at
+deployment, chosen by name (as RL4CO's ``get_decoding_strategy``) and never saved among the network's parameters.
+
+A strategy answers two questions of every pre-assign round of a decision: which task each free entity is a candidate
+of (:meth:`Decoder.preassign`), and which team each task keeps from its candidates (:meth:`Decoder.teams`). Training
+never uses them: its sampled decisions are the policy's own.
+
+>>> model.set_decoder("team_search", samples=32)            # every later deterministic predict
+>>> with model.decoding("exact_covers"):                   # inside the block only
+...     evaluate_policy(model, env)
+>>> model.predict(obs, deterministic=True, decoder="argmax")  # one call
+
+Adding a strategy is one class here, registered by name with :func:`register_decoder`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
+
+import torch as th
+
+from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.common.utils import check_counts, check_finite
+from sb3_taskalloc.two_stage_sac.search import cover_search, exact_covers, sampled_search, select_search
+from sb3_taskalloc.two_stage_sac.select_stage import decode_round
+
+if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
+
+DecoderT = TypeVar("DecoderT", bound=type["Decoder"])
+
+#: name -> strategy class; :func:`get_decoding_strategy` builds one by name.
+DECODERS: dict[str, type[Decoder]] = {}
+
+
+def register_decoder(cls: DecoderT) -> DecoderT:
+    """Class decorator: make ``cls`` available by its ``name``."""
+    DECODERS[cls.name] = cls
+    return cls
+
+
+class Decoder:
+    """The argmax at both stages: each free entity takes its most probable task, each task its pointer's argmax team.
+
+    Subclasses override :meth:`preassign` and/or :meth:`teams`; their keyword arguments are their whole
+    configuration (:attr:`config`). A strategy that samples draws from its own stream, seeded at ``seed`` when first
+    used, so an evaluation is reproducible and leaves torch's global stream alone.
+    """
+
+    name: ClassVar[str] = "argmax"
+    #: Whether the strategy decides by the argmax (False: it samples from the policy's distributions).
+    deterministic: ClassVar[bool] = True
+
+    def __init__(self, seed: int = 0) -> None:
+        check_counts({"seed": seed}, minimum=0)
+        self.seed = seed
+        self._stream: th.Generator | None = None
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """The keyword arguments that rebuild this strategy (:func:`get_decoding_strategy`)."""
+        return {k: v for k, v in vars(self).items() if not k.startswith("_")}
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.config.items())
+        return f"{type(self).__name__}({args})"
+
+    def stream(self, device: th.device) -> th.Generator:
+        """The strategy's random stream on ``device``, seeded at :attr:`seed` when first used there."""
+        if self._stream is None or self._stream.device != device:
+            self._stream = th.Generator(device=device).manual_seed(self.seed)
+        return self._stream
+
+    def preassign(
+        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        """(B, N) the task each free entity is a candidate of (−1: none), and (B, M) tasks the round counts as tried
+        besides those with candidates (None: no others)."""
+        return th.where(view.assignable, dist.get_actions(self.deterministic), -1), None
+
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """(B, M, N) each task's pick steps among its candidates ``task_of`` and (B, M) the tasks kept."""
+        st = decode_round(policy.selector.head, view, task_of, self.deterministic)
+        return st.rank, st.kept()
+
+
+register_decoder(Decoder)
+
+
+@register_decoder
+class SampledDecoder(Decoder):
+    """Samples at both stages from the policy's own distributions, as training collects its data."""
+
+    name = "sampled"
+    deterministic = False
+
+    def preassign(
+        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        return th.where(view.assignable, dist.get_actions(False), -1), None
+
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        st = decode_round(policy.selector.head, view, task_of, False)
+        return st.rank, st.kept()
+
+
+@register_decoder
+class PreassignSearchDecoder(Decoder):
+    """The first round's pre-assignment is the best, by the step's profit, of the argmax and ``samples`` − 1 joint
+    pre-assignments drawn from π^(1/T) (:func:`.search.sampled_search`): the sampling decoding of attention models
+    for routing (implementation detail 16). The teams are the pointer's argmax."""
+
+    name = "preassign_search"
+
+    def __init__(self, samples: int = 32, temperature: float = 2.0, seed: int = 0) -> None:
+        super().__init__(seed)
+        check_counts({"samples": samples})
+        check_finite({"temperature": temperature})
+        self.samples, self.temperature = samples, float(temperature)
+
+    def preassign(
+        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        if not first_round or self.samples == 1:
+            return super().preassign(policy, view, dist, first_round)
+        head = policy.selector.head
+        found = sampled_search(dist, head, view, self.samples, self.temperature, self.stream(view.pair_cost.device))
+        return found.candidates, None
+
+
+@register_decoder
+class TeamSearchDecoder(Decoder):
+    """Each task of every round takes the best, by its profit, of the pointer's argmax team and ``samples`` − 1 teams
+    sampled at ``temperature`` (:func:`.search.select_search`, implementation detail 20); with ``exact`` also the exact
+    most profitable cover of its candidates (:func:`.search.cover_search`, detail 21) where it is better still."""
+
+    name = "team_search"
+
+    def __init__(self, samples: int = 16, temperature: float = 1.0, exact: bool = False, seed: int = 0) -> None:
+        super().__init__(seed)
+        check_counts({"samples": samples})
+        check_finite({"temperature": temperature})
+        self.samples, self.temperature = samples, float(temperature)
+        if not isinstance(exact, bool):
+            raise ValueError(f"exact must be True or False, got {exact!r}")
+        self.exact = exact
+
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        head = policy.selector.head
+        found = select_search(head, view, task_of, self.samples, self.temperature, self.stream(view.pair_cost.device))
+        if self.exact:
+            found = cover_search(head, view, task_of, against=found)
+        return found.rank, found.profit > 0  # a task's profit is positive exactly where its team is kept
+
+
+@register_decoder
+class ExactCoversDecoder(TeamSearchDecoder):
+    """Each task's team is the better of the pointer's argmax and the exact most profitable cover of its candidates
+    (the per-step MILP's formulation on the task's candidate pairs; implementation detail 21)."""
+
+    name = "exact_covers"
+
+    def __init__(self, seed: int = 0) -> None:
+        super().__init__(samples=1, exact=True, seed=seed)
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return {"seed": self.seed}
+
+
+@register_decoder
+class ExactTopDecoder(ExactCoversDecoder):
+    """The pre-assignment itself from the solver, pruned by the policy: each round solves the per-step MILP's
+    formulation on the pairs that join each free entity to one of its ``top`` most probable tasks (implementation
+    detail 22), and its teams are weighed as in ``exact_covers``. Entities outside the cover stay free for the next
+    round; the round counts as tried the tasks it covers and those of the argmax's candidate sets."""
+
+    name = "exact_top"
+
+    def __init__(self, top: int = 1, seed: int = 0) -> None:
+        super().__init__(seed)
+        check_counts({"top": top})
+        self.top = top
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return {"top": self.top, "seed": self.seed}
+
+    def preassign(
+        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        M = view.task_mask.shape[1]
+        # A stable sort breaks ties between equally probable tasks toward the lower slot, as the argmax does, so its
+        # first column is the argmax and top = 1 keeps the argmax's own tasks (topk's order among ties is unspecified).
+        order = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices
+        chosen = th.zeros_like(view.valid).scatter_(-1, order[..., : min(self.top, M)], True)
+        covers = exact_covers(view, chosen & view.valid & view.assignable.unsqueeze(-1))
+        argmax = th.where(view.assignable, order[..., 0], -1)
+        tasks = th.arange(M, device=argmax.device).view(1, M, 1)
+        return covers, (argmax.unsqueeze(1) == tasks).any(-1)
+
+
+def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:
+    """The strategy ``name`` (:data:`DECODERS`) built with ``config``; a :class:`Decoder` passes through."""
+    if isinstance(name, Decoder):
+        if config:
+            raise ValueError(f"a Decoder instance takes no further settings, got {sorted(config)}")
+        return name
+    if name not in DECODERS:
+        raise ValueError(f"unknown decoding strategy {name!r}; choose from {sorted(DECODERS)}")
+    try:
+        return DECODERS[name](**config)
+    except TypeError as error:
+        raise ValueError(f"decoding strategy {name!r}: {error}") from None

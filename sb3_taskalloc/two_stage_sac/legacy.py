@@ -1,0 +1,142 @@
+"""Models saved by sb3_taskalloc before the options of ``docs/learning.md`` left the library (commit 632165d and
+earlier) load unchanged: their settings are converted to today's, with a warning for what no longer exists.
+
+- The decision-time searches that were ``TAMPolicy`` keywords become the model's decoding strategy
+  (:mod:`.decoding`): ``decision_samples`` → ``"preassign_search"``, ``select_decision_samples`` and
+  ``select_decision_exact`` → ``"team_search"``, ``decision_exact_top`` → ``"exact_top"``.
+- The AMIX settings ``monotonic_mixer``, ``hyper_bias`` and ``team_value`` move into ``mixer_kwargs``; the select
+  stage's ``select_*`` settings of the algorithm into ``select_kwargs``.
+- Training terms that were removed (their verdicts are in ``docs/learning.md``) are dropped: a loaded model decides as
+  it did, and further training runs without them. Pointer architectures that were removed cannot load (their weights
+  have no place in today's networks); the error names the commit that still has them.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import warnings
+import zipfile
+from typing import Any
+
+from stable_baselines3.common.save_util import json_to_data
+
+from sb3_taskalloc.common.utils import with_default_suffix
+from sb3_taskalloc.two_stage_sac.decoding import Decoder, get_decoding_strategy
+
+#: The last commit whose library held the removed options.
+LAST_COMMIT = "632165d"
+
+#: Removed training terms of TwoStageSAC (attribute -> the value at which it did nothing).
+REMOVED_TERMS: dict[str, Any] = {
+    "actor_warmup": 0,
+    "profit_coef": 0.0,
+    "search_coef": 0.0,
+    "select_search_method": "sample",
+    "counterfactual_rate": 0.0,
+}
+#: Their companions, dropped with them.
+REMOVED_COMPANIONS = (
+    "profit_entities",
+    "profit_batch_size",
+    "search_samples",
+    "search_temperature",
+    "search_batch_size",
+    "select_search_batch_size",
+    "counterfactual_batch_size",
+    "counterfactual_coef",
+    "counterfactual_buffer",
+    "_branched",
+)
+#: Removed pointer architectures (policy keyword -> its value when off).
+REMOVED_ARCHITECTURES: dict[str, Any] = {"select_pair_hidden": 0, "select_scarcity": False}
+#: TAMPolicy keywords that moved into ``mixer_kwargs`` (old name -> new key).
+MIXER_KEYS = {"monotonic_mixer": "monotonic", "hyper_bias": "hyper_bias", "team_value": "team_value"}
+#: TwoStageSAC attributes that moved into ``select_kwargs`` (old name -> new key).
+SELECT_KEYS = {
+    "select_ent_coef": "ent_coef",
+    "select_prior_coef": "prior_coef",
+    "select_batch_size": "batch_size",
+    "select_search_coef": "search_coef",
+    "select_search_samples": "search_samples",
+    "select_search_temperature": "search_temperature",
+}
+_DECODER_KEYS = (
+    "decision_samples",
+    "decision_temperature",
+    "select_decision_samples",
+    "select_decision_temperature",
+    "select_decision_exact",
+    "decision_exact_top",
+)
+
+
+def saved_data(path: str | pathlib.Path) -> dict[str, Any] | None:
+    """The ``data`` of a saved model (its settings, without the weights), or None where there is no such file."""
+    found = next((p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file()), None)
+    if found is None or not zipfile.is_zipfile(found):
+        return None
+    with zipfile.ZipFile(found) as archive:
+        if "data" not in archive.namelist():
+            return None
+        return json_to_data(archive.read("data").decode())
+
+
+def decoder_of(policy_kwargs: dict[str, Any]) -> Decoder | None:
+    """The decoding strategy of an old model's decision-time keywords (popped from ``policy_kwargs``), or None."""
+    old = {k: policy_kwargs.pop(k) for k in _DECODER_KEYS if k in policy_kwargs}
+    if old.get("decision_exact_top", 0):
+        return get_decoding_strategy("exact_top", top=old["decision_exact_top"])
+    if old.get("decision_samples", 1) > 1:
+        return get_decoding_strategy(
+            "preassign_search", samples=old["decision_samples"], temperature=old.get("decision_temperature", 2.0)
+        )
+    if old.get("select_decision_samples", 1) > 1 or old.get("select_decision_exact", False):
+        return get_decoding_strategy(
+            "team_search",
+            samples=old.get("select_decision_samples", 1),
+            temperature=old.get("select_decision_temperature", 1.0),
+            exact=bool(old.get("select_decision_exact", False)),
+        )
+    return None
+
+
+def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decoder | None]:
+    """What an old model's ``data`` needs to load today.
+
+    :return: the replaced items of ``data`` (``custom_objects`` of SB3's ``load``), the attributes to add (its
+        ``**kwargs``) and the decoding strategy of its decision-time keywords (None: the argmax)
+    """
+    policy_kwargs = dict(data.get("policy_kwargs") or {})
+    removed = {k: policy_kwargs[k] for k in REMOVED_ARCHITECTURES if k in policy_kwargs}
+    if any(v != REMOVED_ARCHITECTURES[k] for k, v in removed.items()):
+        raise ValueError(
+            f"this model's pointer was built with {removed}, an architecture measured as not helping and removed from "
+            f"sb3_taskalloc (docs/learning.md); load it with the library at commit {LAST_COMMIT}"
+        )
+    for key in removed:
+        del policy_kwargs[key]
+    decoder = decoder_of(policy_kwargs)
+    mixer = {new: policy_kwargs.pop(old) for old, new in MIXER_KEYS.items() if old in policy_kwargs}
+    if mixer:
+        policy_kwargs["mixer_kwargs"] = {**policy_kwargs.get("mixer_kwargs", {}), **mixer}
+    custom = {"policy_kwargs": policy_kwargs} if policy_kwargs != (data.get("policy_kwargs") or {}) else {}
+    attributes: dict[str, Any] = {}
+    if "select_kwargs" not in data and any(k in data for k in SELECT_KEYS):
+        attributes["select_kwargs"] = {new: data[old] for old, new in SELECT_KEYS.items() if old in data}
+    dropped = sorted(k for k, off in REMOVED_TERMS.items() if k in data and data[k] != off)
+    if dropped:
+        warnings.warn(
+            f"this model was trained with {dropped}, training terms removed from sb3_taskalloc (docs/learning.md): it "
+            "decides as before, and further training runs without them",
+            stacklevel=3,
+        )
+    for key in (*REMOVED_TERMS, *REMOVED_COMPANIONS, *SELECT_KEYS):
+        if key in data:
+            custom[key] = None
+    if decoder is not None:
+        warnings.warn(
+            f"this model was saved with a decision-time search among its policy keywords; it is now its decoding "
+            f"strategy {decoder!r} (model.set_decoder)",
+            stacklevel=3,
+        )
+    return custom, attributes, decoder

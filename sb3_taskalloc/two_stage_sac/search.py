@@ -1,0 +1,189 @@
+"""Searches over the decisions of the two stages, scored by the step's exact profit (:func:`.select_stage.task_profit`,
+:func:`.select_stage.round_profit`): sampled pre-assignments, sampled teams and the exact most profitable covers. The
+decoding strategies (:mod:`.decoding`) use them at decision time, the select stage's search term and DAgger as teachers.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch as th
+
+from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
+from sb3_taskalloc.two_stage_sac.select_stage import decode_round, round_profit, task_profit
+
+
+class SelectSearchResult(NamedTuple):
+    """Each task's best team of a select-stage search (:func:`select_search`)."""
+
+    rank: th.Tensor  # (B, M, N) pick steps of each task's best decode (−1: not picked)
+    profit: th.Tensor  # (B, M) its profit
+    base: th.Tensor  # (B, M) the profit of the deterministic decode
+
+
+def select_search(
+    head: PointerHead,
+    view: ObsView,
+    task_of: th.Tensor,
+    samples: int,
+    temperature: float,
+    generator: th.Generator | None = None,
+) -> SelectSearchResult:
+    """Per task, the best of the deterministic decode and ``samples`` − 1 sampled decodes of its team, by the task's
+    profit (:func:`task_profit`, the select stage's return: reward on cover minus the pair costs); the deterministic
+    decode wins ties (implementation detail 18). Candidate sets are disjoint, so the tasks decode independently and
+    their best teams together form one decision.
+
+    :param head: the pointer actor
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param samples: K, decodes per task including the deterministic one (1: that one alone)
+    :param temperature: T of the sampled decodes (> 1: picks further from the argmax)
+    :param generator: the random stream of the sampled decodes (None: torch's global one)
+    """
+    base = decode_round(head, view, task_of, deterministic=True)
+    p0 = task_profit(base)
+    if samples <= 1:
+        return SelectSearchResult(base.rank, p0, p0)
+    (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
+    rep = ObsView(*(x.repeat_interleave(S, 0) for x in view))
+    st = decode_round(head, rep, task_of.repeat_interleave(S, 0), False, temperature=temperature, generator=generator)
+    profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first
+    best = profit.argmax(1)  # (B, M), the first maximum
+    ranks = th.cat([base.rank.unsqueeze(1), st.rank.view(B, S, M, N)], 1)
+    rank = th.gather(ranks, 1, best.view(B, 1, M, 1).expand(B, 1, M, N)).squeeze(1)
+    return SelectSearchResult(rank, th.gather(profit, 1, best.unsqueeze(1)).squeeze(1), p0)
+
+
+# The exact searches stop by work, not by the clock, so that a decision or a label does not depend on the machine's speed
+# or load: a node limit under which HiGHS proves nearly every step cover optimal (README, "A deterministic stop for the
+# exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
+EXACT_NODE_LIMIT = 1000
+EXACT_TIME_LIMIT = 30.0
+
+
+def exact_covers(
+    view: ObsView,
+    allowed: th.Tensor,
+    node_limit: int = EXACT_NODE_LIMIT,
+    time_limit: float = EXACT_TIME_LIMIT,
+    by_task: bool = True,
+) -> th.Tensor:
+    """(B, N) the task each entity serves in the exact most profitable cover of the ``allowed`` pairs (−1: none):
+    :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone, one
+    HiGHS solve per batch row on the CPU. Where each entity may serve one task at most (the candidates of a
+    pre-assignment) the problem separates by task, and each task's team is
+    :func:`~sb3_taskalloc.baselines.milp.max_profit_team`'s (branch and bound, HiGHS where it runs long).
+
+    :param allowed: (B, N, M) bool pairs that may be assigned
+    :param node_limit: HiGHS node limit per solve (a batch row, or a task whose branch and bound ran long); the best
+        cover found is used when it is reached (a deterministic stop: the cover is the same on any machine)
+    :param time_limit: HiGHS time limit per solve (seconds), a safety net: where it binds, the cover depends on the
+        machine's speed and load
+    :param by_task: solve task by task where the pairs separate (False: one HiGHS solve per batch row always, the
+        reference the benchmark ``python -m sb3_taskalloc.bench labels`` times it against)
+    """
+    import numpy as np
+
+    from sb3_taskalloc.baselines.milp import max_profit_cover, max_profit_team
+
+    tensors = (view.supply, view.demand, view.reward, view.pair_cost)
+    supply, demand, reward, cost = (x.detach().double().cpu().numpy() for x in tensors)
+    pairs = allowed.cpu().numpy()
+    members = np.full(pairs.shape[:2], -1, dtype=np.int64)
+    if by_task and (pairs.sum(-1) <= 1).all():
+        for b, j in zip(*np.nonzero(pairs.any(1)), strict=True):
+            ents = np.flatnonzero(pairs[b, :, j])
+            team = max_profit_team(supply[b, ents], demand[b, j], reward[b, j], cost[b, ents, j], time_limit, node_limit)
+            members[b, ents[team]] = j
+        return th.as_tensor(members, device=allowed.device)
+    for b in range(pairs.shape[0]):
+        ents, tasks = np.flatnonzero(pairs[b].any(1)), np.flatnonzero(pairs[b].any(0))
+        if len(ents) == 0:
+            continue
+        x, _, _ = max_profit_cover(
+            supply[b, ents],
+            demand[b, tasks],
+            reward[b, tasks],
+            cost[b][np.ix_(ents, tasks)],
+            pairs[b][np.ix_(ents, tasks)],
+            time_limit=time_limit,
+            node_limit=node_limit,
+        )
+        e, t = np.nonzero(x)
+        members[b, ents[e]] = tasks[t]
+    return th.as_tensor(members, device=allowed.device)
+
+
+def cover_search(
+    head: PointerHead,
+    view: ObsView,
+    task_of: th.Tensor,
+    node_limit: int = EXACT_NODE_LIMIT,
+    time_limit: float = EXACT_TIME_LIMIT,
+    against: SelectSearchResult | None = None,
+) -> SelectSearchResult:
+    """Per task, the better of the teams ``against`` (default: the deterministic decode) and the exact most profitable
+    cover of its candidates (:func:`exact_covers` on the candidate pairs alone), by the task's profit
+    (:func:`task_profit`); the teams ``against`` win ties (implementation detail 18). The cover's team is decoded by the
+    pointer among its members alone, so its pick order is the pointer's own and a distillation of it teaches which
+    entities to pick, not an order.
+
+    :param head: the pointer actor
+    :param task_of: (B, N) task each entity is a candidate of (−1: none)
+    :param node_limit: HiGHS node limit per batch row (:func:`exact_covers`)
+    :param time_limit: HiGHS time limit per batch row (seconds), a safety net (:func:`exact_covers`)
+    :param against: an earlier search's teams on the same candidates (:func:`select_search`), so the deterministic
+        decode is not decoded twice
+    """
+    if against is None:
+        base = decode_round(head, view, task_of, deterministic=True)
+        p0 = task_profit(base)
+        against = SelectSearchResult(base.rank, p0, p0)
+    M = view.task_mask.shape[1]
+    allowed = task_of.unsqueeze(-1) == th.arange(M, device=task_of.device)
+    cover = decode_round(head, view, exact_covers(view, allowed, node_limit, time_limit), deterministic=True)
+    p1 = task_profit(cover)
+    better = p1 > against.profit
+    return SelectSearchResult(
+        th.where(better.unsqueeze(-1), cover.rank, against.rank), th.where(better, p1, against.profit), against.base
+    )
+
+
+class SearchResult(NamedTuple):
+    candidates: th.Tensor  # (B, N) the best pre-assignment found (task per free entity, −1 otherwise)
+    profit: th.Tensor  # (B,) its step profit
+    base: th.Tensor  # (B,) the step profit of the argmax pre-assignment
+
+
+def sampled_search(
+    dist: MaskedCategorical,
+    head: PointerHead,
+    view: ObsView,
+    samples: int,
+    temperature: float,
+    generator: th.Generator | None = None,
+) -> SearchResult:
+    """The best of the argmax pre-assignment and ``samples`` − 1 joint pre-assignments drawn from π^(1/T), by the step's
+    profit (:func:`round_profit`), all decoded in one batched pass; the argmax wins ties (implementation detail 16).
+
+    :param dist: the pre-assign actor's distribution on ``view``
+    :param head: the pointer actor, decoding deterministically
+    :param samples: K, pre-assignments per state including the argmax (1: the argmax alone)
+    :param temperature: T of the samples (> 1: more entities leave their argmax)
+    :param generator: the random stream of the samples (None: torch's global one)
+    """
+    B, N = view.assignable.shape
+    free = view.assignable
+    c = th.where(free, dist.get_actions(True), -1)  # (B, N)
+    if samples <= 1:
+        base = round_profit(head, view, c)
+        return SearchResult(c, base, base)
+    probs = th.softmax(dist.logits / temperature, -1).reshape(B * N, -1)
+    drawn = th.multinomial(probs, samples - 1, replacement=True, generator=generator).view(B, N, samples - 1)
+    cs = th.cat([c.unsqueeze(1), th.where(free.unsqueeze(1), drawn.transpose(1, 2), -1)], 1)  # (B, K, N), the argmax first
+    rep = ObsView(*(x.repeat_interleave(samples, 0) for x in view))
+    profit = round_profit(head, rep, cs.reshape(B * samples, N)).view(B, samples)
+    best = profit.argmax(1)  # the first maximum: the argmax itself where nothing beats it
+    rows = th.arange(B, device=c.device)
+    return SearchResult(cs[rows, best], profit[rows, best], profit[:, 0])

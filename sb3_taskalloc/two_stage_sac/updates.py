@@ -1,0 +1,168 @@
+"""One gradient step of each stage of :class:`~sb3_taskalloc.TwoStageSAC`, in SAC's order: target → critic → actor →
+temperature (the target networks follow in ``train``). The algorithm holds one update per stage it trains: none for
+the pre-assignment of a policy without it ("W/o Pre"), and one that trains only the critics where the pre-assign actor
+is held at its rule (``train_preassign_actor=False``).
+
+Equations and numbers refer to the paper and to the implementation details of :mod:`sb3_taskalloc.two_stage_sac`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch as th
+from torch.nn import functional as F
+
+import sb3_taskalloc.two_stage_sac.losses as losses
+from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
+from sb3_taskalloc.common.policies import CriticContext
+from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.common.utils import foreach_polyak_update
+
+if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
+
+Logs = dict[str, list[float]]
+
+
+def temperature(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
+    """α as a constant of this gradient step: exp(log α) when tuned, else the fixed value."""
+    return th.exp(log_alpha.detach()) if log_alpha is not None else fixed  # type: ignore[return-value]
+
+
+def optimizer_step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> float:
+    """One step of ``optimizer`` on ``loss``; returns its value."""
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return loss.item()
+
+
+class PreAssignCriticLoss(NamedTuple):
+    loss: th.Tensor  # ½ Σ_k MSE(Q^k_tot(s, c), y)
+    target_q: th.Tensor  # (B,) y
+    current: tuple[th.Tensor, ...]  # (B,) Q^k_tot(s, c) of each critic k
+    contexts: list[CriticContext]  # the online critics' action-independent parts on s (reused by the actor loss)
+
+
+class PreAssignUpdate:
+    """Stage 1, the pre-assignment (paper: Pre-assign Module, Algorithm 2): the TAM critics mixed by AMIX, the TAM actor
+    and its temperature α.
+
+    :param model: the algorithm, whose networks and settings are read at each step
+    :param learn_actor: whether the actor and α learn (False: only the critics, implementation detail 23)
+    """
+
+    def __init__(self, model: TwoStageSAC, learn_actor: bool = True) -> None:
+        self.model = model
+        self.learn_actor = learn_actor
+
+    def critic_loss(
+        self, obs: ObsView, next_obs: ObsView, data: TwoStageReplayBufferSamples, alpha: th.Tensor
+    ) -> PreAssignCriticLoss:
+        """The paper's L_critic(φ) in its soft form on the stored pre-assignment c (details 2–3)."""
+        m = self.model
+        assert m.actor is not None and m.critic is not None and m.critic_target is not None
+        rewards, dones = data.rewards.squeeze(-1), data.dones.squeeze(-1)
+        gamma = m.gamma if data.discounts is None else data.discounts.squeeze(-1)  # γ^k of an n-step return
+        per_entity = m.entropy_bonus == "mean"
+        # y = r + γ(1 − terminated)·[min_k AMIX̄^k(Σ_j π_i(j|s′)·Q̄^k_i(s′, j)) + α·H(s′)]
+        with th.no_grad():
+            next_dist = m.actor(next_obs)
+            next_q = th.stack(m.critic_target(next_obs, next_dist.probs), dim=0).min(0).values
+            next_v = next_q + alpha * losses.state_entropy(next_dist, next_obs, per_entity)
+            target_q = rewards + (1 - dones) * gamma * next_v
+        # ½ Σ_k (AMIX^k(Q^k_i(s, c_i)) − y)²
+        contexts = m.critic.contexts(obs)
+        current = m.critic.mix(contexts, data.candidates.transpose(1, 2).float())  # c one-hot: (B, N, M)
+        loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current)
+        return PreAssignCriticLoss(loss, target_q, tuple(current), contexts)  # type: ignore[arg-type]
+
+    def __call__(self, obs: ObsView, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
+        m = self.model
+        assert m.actor is not None and m.critic is not None
+        alpha = temperature(m.log_ent_coef, m.ent_coef_tensor)
+        logs["ent_coef"].append(alpha.item())
+        # Target and critic.
+        critic = self.critic_loss(obs, m.policy.parse(data.next_observations), data, alpha)
+        logs["critic_loss"].append(critic.loss.item())
+        if not self.learn_actor:
+            optimizer_step(m.critic.optimizer, critic.loss)
+            return
+        # Actor: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)) on the critic values above (detail 3), + β·KL(π ‖ π₀)
+        # (detail 12). The parameters are disjoint, so one backward pass gives each network its own gradient.
+        dist = m.actor(obs)
+        actor_loss = losses.preassign_actor_loss(
+            dist, m.critic, critic.contexts, obs, alpha, m.policy.actor_prior, m.prior_coef, m.entropy_bonus == "mean"
+        )
+        logs["actor_loss"].append(actor_loss.item())
+        m.critic.optimizer.zero_grad()
+        m.actor.optimizer.zero_grad()
+        (critic.loss + actor_loss).backward()
+        m.critic.optimizer.step()
+        m.actor.optimizer.step()
+        # Temperature: log α·(H̄ − H̄*) on the mean per-entity entropy (detail 4).
+        if m.log_ent_coef is not None and m.ent_coef_optimizer is not None:
+            entropy = losses.preassign_entropy(dist, obs, m.target_entropy_ratio)
+            if entropy.entropy.numel() > 0:
+                ent_loss = losses.ent_coef_loss(m.log_ent_coef, entropy.entropy, entropy.target)
+                logs["ent_coef_loss"].append(optimizer_step(m.ent_coef_optimizer, ent_loss))
+
+    def update_target(self) -> None:
+        m = self.model
+        assert m.critic is not None and m.critic_target is not None
+        foreach_polyak_update(m.critic.parameters(), m.critic_target.parameters(), m.tau)
+
+
+class SelectUpdate:
+    """Stage 2, the select stage (paper: Select Module, Algorithm 3): discrete SAC on the stored pick orders (detail 5)
+    on the first ``select_kwargs["batch_size"]`` rows of the minibatch (each holds up to M × team-size transitions),
+    plus the team-search distillation term (detail 18) when its weight is positive.
+
+    :param model: the algorithm, whose networks and settings are read at each step
+    """
+
+    def __init__(self, model: TwoStageSAC) -> None:
+        self.model = model
+
+    def __call__(self, obs: ObsView, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
+        m, cfg = self.model, self.model.select_kwargs
+        alpha = temperature(m.log_select_ent_coef, m.select_ent_coef_tensor)
+        logs["select_ent_coef"].append(alpha.item())
+        rows = slice(0, cfg["batch_size"])
+        view = ObsView(*(x[rows] for x in obs))
+        candidates = data.candidates[rows]
+        # Target Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})]
+        # (γ = 1 within a task), the critic loss on it, and the actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)]
+        # + β_s·KL(π ‖ π₀), all steps of all tasks teacher-forced in one pass.
+        select = losses.select_losses(
+            m.selector,
+            m.select_critic,
+            m.select_critic_target,
+            view,
+            candidates,
+            data.pick_rank[rows],
+            m.policy.preassign,
+            alpha,
+            m.target_entropy_ratio,
+            m.policy.selector_prior,
+            cfg["prior_coef"],
+        )
+        if select is None:  # no task picked anything in these rows
+            return
+        logs["select_critic_loss"].append(optimizer_step(m.select_critic.optimizer, select.critic_loss))
+        actor_loss = select.actor_loss
+        if cfg["search_coef"] > 0:  # each row costs search_samples decodes
+            found = losses.select_search_loss(m.selector, view, candidates, cfg["search_samples"], cfg["search_temperature"])
+            logs["select_search_loss"].append(found.loss.item())
+            logs["select_search_improved"].append(found.improved.item())
+            logs["select_search_gain"].append(found.gain.item())
+            actor_loss = actor_loss + cfg["search_coef"] * found.loss
+        logs["select_actor_loss"].append(optimizer_step(m.selector.optimizer, actor_loss))
+        if m.log_select_ent_coef is not None and m.select_ent_coef_optimizer is not None:
+            ent_loss = losses.ent_coef_loss(m.log_select_ent_coef, select.entropy, select.target_entropy)
+            logs["select_ent_coef_loss"].append(optimizer_step(m.select_ent_coef_optimizer, ent_loss))
+
+    def update_target(self) -> None:
+        m = self.model
+        foreach_polyak_update(m.select_critic.parameters(), m.select_critic_target.parameters(), m.tau)
