@@ -11,6 +11,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from envs.rendering import random_valid_action
 from sb3_taskalloc import TAMPolicy
 from sb3_taskalloc.common.torch_layers import ObsView, parse_obs
+from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, select_features
 
 VARIANTS = {
@@ -19,14 +20,17 @@ VARIANTS = {
     "wo_pre_random": {"preassign": False, "task_order": "random"},
     "wo_tam": {"encoder": "mlp"},
     "wo_amix": {"mixer": "global"},
-    "attention_monotonic": {"n_attention_layers": 1, "monotonic_mixer": True},
+    "attention_monotonic": {"n_attention_layers": 1, "mixer_kwargs": {"monotonic": True}},
     "rounds": {"rounds": 3},
 }
 ENVS = ["TaskAlloc/Almighty-v0", "TaskAlloc/EPT-v0", "TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"]
 
 
-def make_policy(env: gym.Env, **kwargs) -> TAMPolicy:
-    return TAMPolicy(env.observation_space, env.action_space, lambda _: 1e-3, hidden_dim=16, **kwargs)  # type: ignore[arg-type]
+def make_policy(env: gym.Env, decoder: str = "argmax", decoder_kwargs: dict | None = None, **kwargs) -> TAMPolicy:
+    """A narrow TAMPolicy whose deterministic decisions are decoded by the strategy ``decoder``."""
+    policy = TAMPolicy(env.observation_space, env.action_space, lambda _: 1e-3, hidden_dim=16, **kwargs)  # type: ignore[arg-type]
+    policy.decoder = get_decoding_strategy(decoder, **(decoder_kwargs or {}))
+    return policy
 
 
 def sample_observations(env_id: str, n: int, seed: int = 0) -> list[dict[str, np.ndarray]]:
@@ -108,7 +112,7 @@ def permute(obs: dict[str, np.ndarray], perm_e: np.ndarray, perm_t: np.ndarray) 
     return out
 
 
-@pytest.mark.parametrize("kwargs", [{}, {"n_attention_layers": 1}, {"monotonic_mixer": True}])
+@pytest.mark.parametrize("kwargs", [{}, {"n_attention_layers": 1}, {"mixer_kwargs": {"monotonic": True}}])
 def test_permutation_equivariance(kwargs):
     th.manual_seed(0)
     env = gym.make("TaskAlloc/RBF-v0")
@@ -205,8 +209,8 @@ def test_rounds_give_the_left_over_entities_the_untried_tasks():
     assert pooled.decide(view, deterministic=True).env_action.tolist() == [[2, 2, 1]]
 
 
-def test_decision_samples_take_the_most_profitable_first_round():
-    """With ``decision_samples`` K a deterministic decision's first round is the best, by the step's profit, of the argmax
+def test_preassign_search_takes_the_most_profitable_first_round():
+    """With the ``preassign_search`` decoder of K samples a deterministic decision's first round is the best, by the step's profit, of the argmax
     and K − 1 pre-assignments from the policy's own stream (seeded at 0, so decisions are reproducible): never less
     profitable than the argmax, more in some of these RBF states; K = 1 is the argmax."""
     from sb3_taskalloc.two_stage_sac.select_stage import round_profit
@@ -214,7 +218,7 @@ def test_decision_samples_take_the_most_profitable_first_round():
     env = gym.make("TaskAlloc/RBF-v0")
     obs = [env.reset(seed=s)[0] for s in range(6)]
     view = parse_obs(obs_as_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]}, th.device("cpu")))
-    plain, searching, again = (make_policy(env, decision_samples=k) for k in (1, 16, 16))
+    plain, searching, again = (make_policy(env, "preassign_search", {"samples": k}) for k in (1, 16, 16))
     searching.load_state_dict(plain.state_dict())
     again.load_state_dict(plain.state_dict())
     with th.no_grad():
@@ -226,9 +230,9 @@ def test_decision_samples_take_the_most_profitable_first_round():
         base, found = round_profit(plain.selector.head, view, c), round_profit(plain.selector.head, view, task_of)
         assert bool((found >= base - 1e-5).all()) and bool((found > base + 1e-5).any())
         assert th.equal(again.decide(view, deterministic=True).env_action, best.env_action)
-    for bad in ({"decision_samples": 0}, {"decision_temperature": 0.0}):
+    for bad in ({"samples": 0}, {"temperature": 0.0}, {"top": 2}):
         with pytest.raises(ValueError, match=next(iter(bad))):
-            make_policy(env, **bad)
+            get_decoding_strategy("preassign_search", **bad)
 
 
 def episode_view(env: gym.Env, policy: TAMPolicy) -> ObsView:
@@ -252,12 +256,12 @@ def sent_task_profits(decision: Decision, view: ObsView) -> th.Tensor:
     return decision.kept * (view.reward - cost)
 
 
-def test_select_decision_samples_take_each_tasks_most_profitable_team():
-    """With ``select_decision_samples`` K_s each task of a deterministic decision sends the best, by its profit, of the
+def test_team_search_takes_each_tasks_most_profitable_team():
+    """With the ``team_search`` decoder of K_s samples each task of a deterministic decision sends the best, by its profit, of the
     pointer's argmax team and K_s − 1 sampled ones: a team of its own candidates that covers it, never less profitable
     than the argmax's and more in some of these RBF tasks; reproducible, and sampled decisions do not search."""
     env = gym.make("TaskAlloc/RBF-v0")
-    plain, searching, again = (make_policy(env, select_decision_samples=k) for k in (1, 16, 16))
+    plain, searching, again = (make_policy(env, "team_search", {"samples": k}) for k in (1, 16, 16))
     view = episode_view(env, plain)
     searching.load_state_dict(plain.state_dict())
     again.load_state_dict(plain.state_dict())
@@ -272,13 +276,13 @@ def test_select_decision_samples_take_each_tasks_most_profitable_team():
         sampled = plain.decide(view, deterministic=False).env_action
         th.manual_seed(1)
         assert th.equal(searching.decide(view, deterministic=False).env_action, sampled)
-    for bad in ({"select_decision_samples": 0}, {"select_decision_temperature": -1.0}):
+    for bad in ({"samples": 0}, {"temperature": -1.0}, {"exact": 1}):
         with pytest.raises(ValueError, match=next(iter(bad))):
-            make_policy(env, **bad)
+            get_decoding_strategy("team_search", **bad)
 
 
-def test_select_decision_exact_sends_each_tasks_exact_cover():
-    """With ``select_decision_exact`` each task of a deterministic decision sends a team of its own candidates as
+def test_exact_covers_send_each_tasks_exact_cover():
+    """With the ``exact_covers`` decoder each task of a deterministic decision sends a team of its own candidates as
     profitable as the exact most profitable cover of those candidates (solved here task by task), never less than the
     team search's and more in some of these RBF tasks; the pre-assignment is the argmax's, sampled decisions do not
     search, and a non-bool value is refused."""
@@ -286,7 +290,7 @@ def test_select_decision_exact_sends_each_tasks_exact_cover():
 
     env = gym.make("TaskAlloc/RBF-v0")
     plain, searching, exact = (
-        make_policy(env, **kw) for kw in ({}, {"select_decision_samples": 16}, {"select_decision_exact": True})
+        make_policy(env, *decoder) for decoder in (("argmax",), ("team_search", {"samples": 16}), ("exact_covers",))
     )
     view = episode_view(env, plain)
     searching.load_state_dict(plain.state_dict())
@@ -310,16 +314,16 @@ def test_select_decision_exact_sends_each_tasks_exact_cover():
         sampled = plain.decide(view, deterministic=False).env_action
         th.manual_seed(1)
         assert th.equal(exact.decide(view, deterministic=False).env_action, sampled)
-    with pytest.raises(ValueError, match="select_decision_exact"):
-        make_policy(env, select_decision_exact=1)
+    with pytest.raises(ValueError, match="unknown decoding strategy 'exact'"):
+        make_policy(env, "exact")
 
 
-def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_tasks():
-    """With ``decision_exact_top`` k each round of a deterministic decision pre-assigns by the exact most profitable
+def test_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_tasks():
+    """With the ``exact_top`` decoder of k tasks each round of a deterministic decision pre-assigns by the exact most profitable
     cover of the pairs joining each entity to one of its k most probable tasks: with k = 1 every candidate keeps its
     argmax task, the first round is as profitable as each task's exact cover of the argmax's candidates, the
     candidates of the tasks the solver does not cover are left free for the next round, and over three rounds the
-    decision is that of ``select_decision_exact``; with k = M the first round is
+    decision is that of ``exact_covers``; with k = M the first round is
     worth the per-step MILP's optimum (solved here; 16 free robots keep it tractable). Sampled decisions do not search,
     and bad values are refused."""
     from sb3_taskalloc.baselines.milp import max_profit_cover
@@ -327,14 +331,14 @@ def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_ta
     env = gym.make("TaskAlloc/RBF-v0")
     M = env.observation_space["task_mask"].shape[0]
     plain, exact, top1, every, exact_rounds, top1_rounds = (
-        make_policy(env, **kw)
-        for kw in (
-            {},
-            {"select_decision_exact": True},
-            {"decision_exact_top": 1},
-            {"decision_exact_top": M},
-            {"rounds": 3, "select_decision_exact": True},
-            {"rounds": 3, "decision_exact_top": 1},
+        make_policy(env, *decoder, **kw)
+        for decoder, kw in (
+            (("argmax",), {}),
+            (("exact_covers",), {}),
+            (("exact_top", {"top": 1}), {}),
+            (("exact_top", {"top": M}), {}),
+            (("exact_covers",), {"rounds": 3}),
+            (("exact_top", {"top": 1}), {"rounds": 3}),
         )
     )
     view = episode_view(env, plain)
@@ -362,32 +366,30 @@ def test_decision_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_ta
         sampled = plain.decide(view, deterministic=False).env_action
         th.manual_seed(1)
         assert th.equal(top1.decide(view, deterministic=False).env_action, sampled)
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="decision_exact_top"):
-            make_policy(env, decision_exact_top=bad)
-    with pytest.raises(ValueError, match="decision_samples"):
-        make_policy(env, decision_exact_top=2, decision_samples=8)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="top"):
+            get_decoding_strategy("exact_top", top=bad)
 
 
 def test_exact_searches_stop_each_solve_at_the_node_limit(monkeypatch):
     """The decision-time exact searches bound each HiGHS solve by its node limit (work, the same on any machine), with
     the time limit only as a safety net; a caller's own limits reach the solver."""
     from sb3_taskalloc.baselines import milp
-    from sb3_taskalloc.two_stage_sac import select_stage
+    from sb3_taskalloc.two_stage_sac import search
 
     solve, limits = milp.max_profit_cover, []
     monkeypatch.setattr(milp, "max_profit_cover", lambda *a, **k: limits.append(k) or solve(*a, **k))
     env = gym.make("TaskAlloc/RBF-v0")
-    policy = make_policy(env, rounds=2, decision_exact_top=2)
+    policy = make_policy(env, "exact_top", {"top": 2}, rounds=2)
     view = episode_view(env, make_policy(env))
     view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 16))
     with th.no_grad():
         policy.decide(view, deterministic=True)
     assert len(limits) >= view.pair_cost.shape[0]  # one solve per state and round at least
-    assert all(k["node_limit"] == select_stage.EXACT_NODE_LIMIT for k in limits)
-    assert all(k["time_limit"] == select_stage.EXACT_TIME_LIMIT for k in limits)
+    assert all(k["node_limit"] == search.EXACT_NODE_LIMIT for k in limits)
+    assert all(k["time_limit"] == search.EXACT_TIME_LIMIT for k in limits)
     limits.clear()
-    select_stage.exact_covers(view, view.valid & view.assignable.unsqueeze(-1), node_limit=3, time_limit=5.0)
+    search.exact_covers(view, view.valid & view.assignable.unsqueeze(-1), node_limit=3, time_limit=5.0)
     assert limits and all(k["node_limit"] == 3 and k["time_limit"] == 5.0 for k in limits)
 
 
@@ -507,69 +509,6 @@ def test_frozen_priors_skip_only_zero_dot_products():
     assert not make_policy(env, heuristic_init=False).selector_prior.head.skip_dot
 
 
-def test_pointer_pair_mlp_starts_at_the_rule():
-    """``select_pair_hidden``: the pointer's pair MLP starts with a zero output layer under ``heuristic_init``, so the
-    pointer scores as the rule (and its frozen prior skips the MLP); once the MLP's output is non-zero the scores move
-    and the prior, loaded with such weights, computes it."""
-    th.manual_seed(0)
-    env = gym.make("TaskAlloc/RBF-v0")
-    plain, paired = make_policy(env), make_policy(env, select_pair_hidden=8)
-    assert paired.selector.head.pair is not None and plain.selector.head.pair is None
-    assert paired.selector_prior.head.skip_pair and not paired.selector.head.skip_pair
-    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=4)))
-    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
-    task_state, dyn = SelectState(view, task_of).features()
-
-    def scores(head):
-        return head(head.embed_entities(view), task_state, dyn, task_of)
-
-    th.testing.assert_close(scores(paired.selector.head), scores(plain.selector.head), rtol=0, atol=0)
-    th.testing.assert_close(scores(paired.selector_prior.head), scores(plain.selector.head), rtol=0, atol=0)
-    state = dict(paired.state_dict())
-    for name in ("selector.head.pair.2.bias", "selector_prior.head.pair.2.bias"):
-        state[name] = th.ones_like(state[name])
-    paired.load_state_dict(state)
-    assert not paired.selector_prior.head.skip_pair
-    th.testing.assert_close(scores(paired.selector_prior.head), scores(plain.selector.head) + 10.0)  # κ_s = 10 times 1
-    assert paired._get_constructor_parameters()["select_pair_hidden"] == 8
-    with pytest.raises(ValueError, match="select_pair_hidden"):
-        make_policy(env, select_pair_hidden=-1)
-
-
-def test_pointer_scarcity_starts_at_the_rule():
-    """``select_scarcity``: the pointer actor and the select critics read the two scarcity-weighted unit costs, which
-    the select stage appends to the basis (unchanged) only for them; under ``heuristic_init`` the actor's weights on
-    them start at 0, so it scores as the rule; a weight on them moves the scores; a non-bool is refused."""
-    from sb3_taskalloc.common.torch_layers import SELECT_DYN, SELECT_SCARCITY
-
-    th.manual_seed(0)
-    env = gym.make("TaskAlloc/RBF-v0")
-    plain, scarce = make_policy(env), make_policy(env, select_scarcity=True)
-    assert plain.selector.head.dyn.in_features == SELECT_DYN
-    assert scarce.selector.head.dyn.in_features == SELECT_DYN + SELECT_SCARCITY
-    assert all(h.dyn.in_features == SELECT_DYN + SELECT_SCARCITY for h in scarce.select_critic.heads)
-    assert scarce.selector.head.dyn.weight[0, SELECT_DYN:].abs().sum() == 0
-    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=4)))
-    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
-    task_state, basis = SelectState(view, task_of).features()
-    scarce_state, dyn = SelectState(view, task_of, scarcity=True).features()
-    assert basis.shape[-1] == SELECT_DYN and dyn.shape[-1] == SELECT_DYN + SELECT_SCARCITY
-    th.testing.assert_close(dyn[..., :SELECT_DYN], basis, rtol=0, atol=0)
-    th.testing.assert_close(scarce_state, task_state, rtol=0, atol=0)
-
-    def scores(head, features):
-        return head(head.embed_entities(view), task_state, features, task_of)
-
-    with th.no_grad():
-        th.testing.assert_close(scores(scarce.selector.head, dyn), scores(plain.selector.head, basis), rtol=0, atol=0)
-        scarce.selector.head.dyn.weight[0, SELECT_DYN] = -1.0
-        moved = scores(scarce.selector.head, dyn) - scores(plain.selector.head, basis)
-    th.testing.assert_close(moved, -10.0 * dyn[..., SELECT_DYN])  # κ_s = 10
-    assert scarce._get_constructor_parameters()["select_scarcity"] is True
-    with pytest.raises(ValueError, match="select_scarcity must be True or False"):
-        make_policy(env, select_scarcity=1)
-
-
 def test_optimizers_default_to_fused_adam():
     """Adam runs fused unless ``optimizer_kwargs`` picks an implementation or another optimizer is chosen."""
     env = gym.make("TaskAlloc/Almighty-v0")
@@ -639,21 +578,16 @@ def test_narrow_linear_matches_linear():
     assert list(fast.state_dict()) == ["weight", "bias"]
 
 
-@pytest.mark.parametrize(
-    "state_value, pair_hidden, scarcity", [(False, 0, False), (True, 0, False), (False, 8, False), (True, 8, True)]
-)
-def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcity):
+@pytest.mark.parametrize("state_value", [False, True])
+def test_pointer_scores_equal_their_definition(state_value):
     """``PointerHead`` (one batched product over all tasks, then each entity's own column) scores
-    u_i = d_i·e_j^t / √d + w·x_i^t (+ g([x_i^t, s_j^t])) (+ b(e_j^t)) with d = entity MLP, e = task MLP, s_j^t the
-    task state, x_i^t the basis (with ``scarcity`` also the scarcity-weighted unit costs), as defined, in value and in
-    every parameter's gradient."""
-    from sb3_taskalloc.common.torch_layers import SELECT_DYN, SELECT_SCARCITY, PointerHead
+    u_i = d_i·e_j^t / √d + w·x_i^t (+ b(e_j^t)) with d = entity MLP, e = task MLP, s_j^t the task state, x_i^t the
+    basis, as defined, in value and in every parameter's gradient."""
+    from sb3_taskalloc.common.torch_layers import SELECT_DYN, PointerHead
 
     th.manual_seed(0)
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 5, seed=2)))
-    head = PointerHead(
-        view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value, pair_hidden=pair_hidden, scarcity=scarcity
-    )
+    head = PointerHead(view.entity.shape[-1], view.supply.shape[-1], 16, state_value=state_value)
     task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
     st = SelectState(view, task_of)
     task_state, dyn = select_features(
@@ -663,19 +597,15 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcit
         st.rem.expand(3, -1, -1, -1),
         st.cost.expand(3, -1, -1),
         st.npick.expand(3, -1, -1),
-        scarcity=scarcity,
     )
     weights = th.randn(3, *task_of.shape, dtype=th.float64)
     own = task_of.clamp_min(0)
-    assert dyn.shape[-1] == head.dyn.in_features == SELECT_DYN + SELECT_SCARCITY * scarcity
+    assert dyn.shape[-1] == head.dyn.in_features == SELECT_DYN
 
     def reference():
         d, e = head.entity(view.entity), head.task(task_state)  # (B, N, H), (T, B, M, H)
         e_own = th.stack([e[:, b, own[b]] for b in range(own.shape[0])], 1)  # (T, B, N, H)
         scores = (e_own * d).sum(-1) / head.scale + head.dyn(dyn).squeeze(-1)
-        if head.pair is not None:
-            s_own = th.stack([task_state[:, b, own[b]] for b in range(own.shape[0])], 1)  # (T, B, N, S)
-            scores = scores + head.pair(th.cat([dyn, s_own], -1)).squeeze(-1)
         if head.value is not None:
             scores = scores + th.gather(head.value(e).squeeze(-1), -1, own.expand(3, -1, -1))
         return scores
@@ -692,37 +622,6 @@ def test_pointer_scores_equal_their_definition(state_value, pair_hidden, scarcit
     assert len(fast_grads) == len(ref_grads) == len(list(head.parameters()))
     for a, b in zip(fast_grads, ref_grads, strict=True):
         th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
-
-
-def test_scarcity_features_equal_their_definition():
-    """The last two dynamic features of the select stage: symlog(pair cost / Σ_k w_k^p·min(s_ik, rem_jk)) for p = 1, 2,
-    with w_jk = min(1, rem_jk / Σ_{i' ∈ choices of j} min(s_i'k, rem_jk)) over the task's choices left, re-derived entity
-    by entity at the start of the decoding and after two picks per task (the picked ones no longer offer supply)."""
-    from sb3_taskalloc.common.torch_layers import SELECT_DYN, symlog
-
-    th.manual_seed(3)
-    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 4, seed=5)))
-    task_of = th.where(view.assignable, th.randint(0, view.task_mask.shape[1], view.entity_mask.shape), -1)
-    st = SelectState(view, task_of, scarcity=True)
-    for step in range(3):
-        _, dyn = st.features()
-        for b in range(task_of.shape[0]):
-            for i in th.nonzero(st.choosable[b]).flatten().tolist():
-                j = int(task_of[b, i])
-                rem = st.rem[b, j].double()
-                mates = th.nonzero(st.choosable[b] & (task_of[b] == j)).flatten()
-                offered = th.minimum(view.supply[b, mates].double(), rem).sum(0)
-                w = th.where(offered > 0, rem / offered.clamp_min(1e-12), th.ones_like(rem)).clamp_max(1.0)
-                own = th.minimum(view.supply[b, i].double(), rem)
-                for p in (1, 2):
-                    want = symlog(view.pair_cost[b, i, j].double() / (w**p * own).sum().clamp_min(1e-6))
-                    th.testing.assert_close(dyn[b, i, SELECT_DYN + p - 1].double(), want, rtol=1e-4, atol=1e-4)
-        if step < 2:
-            logits = -dyn[..., SELECT_DYN]  # pick the scarcity-weighted cheapest choice of each task
-            choice = st.choice_mask()  # (B, M, N)
-            picks = th.where(choice, logits.unsqueeze(1), -th.inf).argmax(-1)
-            st.advance(picks, choice.any(-1) & st.active)
-    assert not bool(st.choosable.all())  # picks were made
 
 
 def test_logit_scale_multiplies_the_pre_assign_logits():

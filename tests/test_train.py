@@ -21,7 +21,9 @@ from sb3_taskalloc.common.torch_layers import NEG, ObsView, parse_obs
 from sb3_taskalloc.common.utils import foreach_polyak_update
 from sb3_taskalloc.two_stage_sac import losses
 from sb3_taskalloc.two_stage_sac.policies import starts_at_rule
-from sb3_taskalloc.two_stage_sac.select_stage import SelectState, cover_search, select_search, teacher_forced
+from sb3_taskalloc.two_stage_sac.search import cover_search, select_search
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState, round_profit, teacher_forced
+from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate
 
 
 @pytest.fixture(scope="module")
@@ -33,20 +35,27 @@ def model() -> TwoStageSAC:
         batch_size=16,
         seed=0,
         prior_coef=0.0,  # the paper's losses and critic; the prior term, the mean bonus and team_value have their own tests
-        select_prior_coef=0.0,
+        select_kwargs={"prior_coef": 0.0},
         entropy_bonus="sum",
-        policy_kwargs={"hidden_dim": 16, "team_value": False, "logit_scale": 1.0, "select_logit_scale": 1.0},
+        policy_kwargs={"hidden_dim": 16, "mixer_kwargs": {"team_value": False}, "logit_scale": 1.0, "select_logit_scale": 1.0},
         device="cpu",  # the hand-built batches below are CPU tensors
     )
     m.learn(40)
     return m
 
 
-def preassign_critic_loss(model: TwoStageSAC, view: ObsView, next_view: ObsView, data, alpha) -> losses.PreAssignCriticLoss:
-    return losses.preassign_critic_loss(
-        model.actor, model.critic, model.critic_target, view, next_view, data.rewards[:, 0], data.dones[:, 0],
-        data.candidates, model.gamma, alpha,
-    )  # fmt: skip
+def preassign_critic_loss(
+    model: TwoStageSAC, view: ObsView, next_view: ObsView, data, alpha, dones=None, gamma=None, per_entity: bool = False
+):
+    """The stage-1 critic loss of :class:`PreAssignUpdate` on ``data``, with its done flags, discounts (a number or one
+    per row) and entropy bonus replaced where given."""
+    discounts = None if gamma is None else th.as_tensor(gamma, dtype=th.float32).expand(data.rewards.shape[0]).reshape(-1, 1)
+    data = data._replace(dones=data.dones if dones is None else dones.reshape(-1, 1), discounts=discounts)
+    bonus, model.entropy_bonus = model.entropy_bonus, "mean" if per_entity else "sum"
+    try:
+        return PreAssignUpdate(model).critic_loss(view, next_view, data, alpha)
+    finally:
+        model.entropy_bonus = bonus
 
 
 def actor_loss_of(model: TwoStageSAC, view: ObsView, alpha, dist=None, prior_coef: float = 0.0) -> th.Tensor:
@@ -295,7 +304,7 @@ def test_useless_candidates_are_never_choices():
 def test_entropy_coefficient_specs():
     with pytest.raises(ValueError, match="ent_coef"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef="sometimes")
-    fixed = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef=0.05, select_ent_coef="auto_0.5")
+    fixed = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef=0.05, select_kwargs={"ent_coef": "auto_0.5"})
     assert fixed.log_ent_coef is None and float(fixed.ent_coef_tensor) == pytest.approx(0.05)
     assert float(th.exp(fixed.log_select_ent_coef.detach())) == pytest.approx(0.5)
 
@@ -317,28 +326,6 @@ def _small_rbf_model(**kwargs: Any) -> TwoStageSAC:
     )
 
 
-def test_actor_warmup_trains_only_the_critics():
-    m = _small_rbf_model(actor_warmup=3)
-    m.learn(10)  # fills the buffer; 2 gradient steps, both within the warm-up
-    before = {k: v.clone() for k, v in m.policy.state_dict().items()}
-    alphas = [float(m.log_ent_coef.detach()), float(m.log_select_ent_coef.detach())]  # type: ignore[arg-type]
-    m.train(gradient_steps=1, batch_size=8)  # the last warm-up step
-    after = m.policy.state_dict()
-
-    def changed(state: dict[str, th.Tensor], prefix: str) -> bool:
-        return any(not th.equal(before[k], state[k]) for k in state if k.startswith(prefix))
-
-    assert changed(after, "critic.") and changed(after, "select_critic.")
-    assert not changed(after, "actor.") and not changed(after, "selector.")
-    assert [float(m.log_ent_coef.detach()), float(m.log_select_ent_coef.detach())] == alphas  # type: ignore[arg-type]
-    m.train(gradient_steps=1, batch_size=8)  # past the warm-up: the actors learn
-    assert changed(m.policy.state_dict(), "actor.") and changed(m.policy.state_dict(), "selector.")
-    with pytest.raises(ValueError, match="actor_warmup"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", actor_warmup=-1)
-    with pytest.raises(ValueError, match="select_prior_coef"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_prior_coef=-0.5)
-
-
 def test_frozen_preassign_actor_keeps_its_rule():
     m = _small_rbf_model(train_preassign_actor=False)
     m.learn(12)
@@ -354,7 +341,7 @@ def test_frozen_preassign_actor_keeps_its_rule():
     assert not changed("actor.")
     assert float(m.log_ent_coef.detach()) == alpha  # type: ignore[union-attr]
     with pytest.raises(ValueError, match="train_preassign_actor"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor=False, search_coef=1.0)
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor="no")
 
 
 @pytest.mark.parametrize(
@@ -520,9 +507,8 @@ def test_mean_entropy_bonus_in_target_and_actor(model):
     view, next_view = parse_obs(data.observations), parse_obs(data.next_observations)
     alpha = th.tensor(0.3)
     not_done = th.zeros_like(data.dones[:, 0])  # Almighty ends every episode: bootstrap anyway to see the bonus
-    args = (model.actor, model.critic, model.critic_target, view, next_view, data.rewards[:, 0], not_done)
-    total = losses.preassign_critic_loss(*args, data.candidates, model.gamma, alpha)
-    mean = losses.preassign_critic_loss(*args, data.candidates, model.gamma, alpha, entropy_per_entity=True)
+    total = preassign_critic_loss(model, view, next_view, data, alpha, not_done)
+    mean = preassign_critic_loss(model, view, next_view, data, alpha, not_done, per_entity=True)
     with th.no_grad():
         h = model.actor(next_view).entropy().sum(1)
     n_free = next_view.assignable.sum(1).clamp_min(1)
@@ -577,11 +563,10 @@ def test_n_step_target(model):
     view, next_view = parse_obs(data.observations), parse_obs(data.next_observations)
     alpha = th.tensor(0.1)
     not_done = th.zeros_like(data.dones[:, 0])
-    args = (model.actor, model.critic, model.critic_target, view, next_view, data.rewards[:, 0], not_done, data.candidates)
     discounts = th.linspace(0.2, 0.9, 16)
-    zero = losses.preassign_critic_loss(*args, 0.0, alpha)  # y = r
-    per_row = losses.preassign_critic_loss(*args, discounts, alpha)
-    full = losses.preassign_critic_loss(*args, 1.0, alpha)  # y = r + V̄(s')
+    zero = preassign_critic_loss(model, view, next_view, data, alpha, not_done, 0.0)  # y = r
+    per_row = preassign_critic_loss(model, view, next_view, data, alpha, not_done, discounts)
+    full = preassign_critic_loss(model, view, next_view, data, alpha, not_done, 1.0)  # y = r + V̄(s')
     th.testing.assert_close(per_row.target_q, zero.target_q + discounts * (full.target_q - zero.target_q))
 
 
@@ -633,9 +618,9 @@ def test_team_value_closed_form_and_gradient():
     probs = th.softmax(th.randn(1, N, M), -1).requires_grad_(True)
     team(view, probs).sum().backward()
     assert probs.grad is not None and probs.grad.abs().sum() > 0
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"team_value": True}, device="cpu")
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"mixer_kwargs": {"team_value": True}}, device="cpu")
     assert all(isinstance(q.team, TeamValue) for q in model.critic.q_networks)
-    assert TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"team_value": False}).critic.q_networks[0].team is None
+    assert TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"mixer_kwargs": {"team_value": False}}).critic.q_networks[0].team is None
 
 
 def test_round_profit_is_the_commitment_reward():
@@ -648,40 +633,9 @@ def test_round_profit_is_the_commitment_reward():
         view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
         decision = model.policy.decide(view, deterministic=True)
         c = th.where(view.assignable, model.actor(view).get_actions(True), -1)
-        profit = float(losses.round_profit(model.selector.head, view, c)[0])
+        profit = float(round_profit(model.selector.head, view, c)[0])
         _, _, _, _, info = env.step(decision.env_action[0].numpy())
         assert profit == pytest.approx(info["commitment_reward"], abs=1e-4) and profit != 0.0
-
-
-def test_preassign_profit_loss_closed_form():
-    """Moving every free entity: the loss is −mean_i Σ_j π_i(j) A_ij / σ_A with A_ij = P(c^{i→j}) − P(c), computed here
-    one variant at a time."""
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    env = gym.make("TaskAlloc/Almighty-v0")
-    obs, _ = env.reset(seed=0)
-    view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
-    dist = model.actor(view)
-    head = model.selector.head
-    N, M = view.pair_cost.shape[1:]
-    loss = losses.preassign_profit_loss(dist, head, view, n_entities=N)
-    with th.no_grad():
-        c = th.where(view.assignable, dist.get_actions(True), -1)
-        base = float(losses.round_profit(head, view, c)[0])
-        adv = th.zeros(N, M)
-        for i in th.nonzero(view.assignable[0]).flatten().tolist():
-            for j in th.nonzero(view.valid[0, i]).flatten().tolist():
-                moved = c.clone()
-                moved[0, i] = j
-                adv[i, j] = float(losses.round_profit(head, view, moved)[0]) - base
-        valid = view.valid[0] & view.assignable[0].unsqueeze(-1)
-        free = view.assignable[0]
-        expected = -(dist.probs[0] * adv / adv[valid].std()).sum(-1)[free].mean()
-    assert adv.abs().sum() > 0  # some move changes the profit
-    th.testing.assert_close(loss.detach(), expected, atol=1e-5, rtol=1e-5)
-    loss.backward()
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.actor.parameters())
-    with pytest.raises(ValueError, match="profit_coef"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", profit_coef=-1.0)
 
 
 def reset_view(model: TwoStageSAC, env_id: str, n: int) -> ObsView:
@@ -697,43 +651,6 @@ def mt_argmax_round() -> tuple[TwoStageSAC, ObsView, th.Tensor]:
     view = reset_view(model, "TaskAlloc/MT-v0", 8)
     with th.no_grad():
         return model, view, th.where(view.assignable, model.actor(view).get_actions(True), -1)
-
-
-def test_preassign_search_loss_distils_the_best_sample():
-    """The search term's target is the sampled pre-assignment with the highest step profit, the argmax where none beats
-    it: recomputed here from the same samples, its loss is −Σ_i log π_i(c*_i) over the states it improves, and a step
-    on it raises the log-probability of c*; with one sample (the argmax alone) the term is 0."""
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    view = reset_view(model, "TaskAlloc/RBF-v0", 4)
-    head = model.selector.head
-    dist = model.actor(view)
-    th.manual_seed(0)
-    search = losses.preassign_search_loss(dist, head, view, samples=8, temperature=4.0)
-    with th.no_grad():
-        th.manual_seed(0)
-        free = view.assignable
-        c = th.where(free, dist.get_actions(True), -1)
-        N = free.shape[1]
-        drawn = th.multinomial(th.softmax(dist.logits / 4.0, -1).reshape(4 * N, -1), 7, replacement=True).view(4, N, 7)
-        expected, gains = [], []
-        for b in range(4):
-            cands = [c[b]] + [th.where(free[b], drawn[b, :, k], -1) for k in range(7)]
-            rows = ObsView(*(x[b : b + 1] for x in view))
-            profits = [float(losses.round_profit(head, rows, x.unsqueeze(0))[0]) for x in cands]
-            gains.append(max(profits) - profits[0])
-            if max(profits) > profits[0]:
-                best = cands[int(np.argmax(profits))]
-                expected.append(-dist.log_probs[b, free[b]].gather(1, best[free[b]].unsqueeze(-1)).sum())
-    assert expected, "no sample beat the argmax: the case checks nothing"
-    th.testing.assert_close(search.loss.detach(), th.stack(expected).mean(), atol=1e-5, rtol=1e-5)
-    assert float(search.improved) == pytest.approx(len(expected) / 4)
-    assert float(search.gain) == pytest.approx(np.mean(gains), abs=1e-4)
-    search.loss.backward()
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.actor.parameters())
-    assert float(losses.preassign_search_loss(model.actor(view), head, view, samples=1, temperature=4.0).loss.detach()) == 0.0
-    for bad in ({"search_coef": -1.0}, {"search_temperature": 0.0}, {"search_samples": 0}):
-        with pytest.raises(ValueError, match=next(iter(bad))):
-            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
 
 
 def forced_steps(head, view: ObsView, task_of: th.Tensor, rank: th.Tensor):
@@ -753,7 +670,7 @@ def forced_steps(head, view: ObsView, task_of: th.Tensor, rank: th.Tensor):
 
 
 def test_select_search_loss_distils_the_best_team():
-    """``select_search_coef`` (implementation detail 18): per task, the search's team is at least as profitable as the
+    """``select_kwargs["search_coef"]`` (implementation detail 18): per task, the search's team is at least as profitable as the
     deterministic one, its teacher-forced rewards add up to that profit, and the loss is −Σ_t log π(a*_t|s*_t) over the
     tasks it improves, recomputed here by stepping a :class:`SelectState` through the forced picks one at a time."""
     model, view, task_of = mt_argmax_round()
@@ -783,74 +700,20 @@ def test_select_search_loss_distils_the_best_team():
     one = select_search(head, view, task_of, samples=1, temperature=3.0)
     assert bool((one.profit == one.base).all())
     assert float(losses.select_search_loss(model.selector, view, candidates, samples=1, temperature=3.0).loss) == 0.0
-    bad_kwargs = ({"select_search_coef": -1.0}, {"select_search_temperature": 0.0}, {"select_search_samples": 0})
+    bad_kwargs = ({"search_coef": -1.0}, {"search_temperature": 0.0}, {"search_samples": 0}, {"search": 1})
     for bad in bad_kwargs:
         with pytest.raises(ValueError, match=next(iter(bad))):
-            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **bad)
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_kwargs=bad)
     with pytest.raises(ValueError, match="pre-assigning policy"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_search_coef=1.0, policy_kwargs={"preassign": False})
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_kwargs={"search_coef": 1.0}, policy_kwargs={"preassign": False})
     # The term runs inside training and its statistics reach the logger.
     model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/MT-v0", select_search_coef=1.0, select_search_samples=4, learning_starts=30, batch_size=8,
-        select_batch_size=4, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
+        "TAMPolicy", "TaskAlloc/MT-v0", select_kwargs={"search_coef": 1.0, "search_samples": 4, "batch_size": 4},
+        learning_starts=30, batch_size=8, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
     )  # fmt: skip
     model.learn(60)
     model.train(gradient_steps=1, batch_size=8)
     assert "train/select_search_improved" in model.logger.name_to_value
-
-
-def test_select_search_exact_finds_the_most_profitable_team_of_each_task(monkeypatch: pytest.MonkeyPatch):
-    """``select_search_method="exact"``: each task's team is the most profitable cover of its candidates (checked
-    against every subset of them), never worse than the deterministic decode or a sampled search, decoded in an order
-    that teacher forcing reproduces; the loss distils it where it beats the deterministic team."""
-    model, view, task_of = mt_argmax_round()
-    head = model.selector.head
-    B, M = view.task_mask.shape
-    with th.no_grad():
-        exact = cover_search(head, view, task_of)
-        th.manual_seed(0)
-        sampled = select_search(head, view, task_of, samples=32, temperature=3.0)
-    candidates = task_of.unsqueeze(1) == th.arange(M).view(1, M, 1)
-    assert bool(((exact.rank >= 0) <= candidates).all())
-    assert bool((exact.profit >= exact.base).all()) and bool((exact.profit >= sampled.profit - 1e-4).all())
-    checked = 0
-    for b in range(B):
-        for j in range(M):
-            members = th.nonzero(candidates[b, j]).flatten().tolist()
-            if not 0 < len(members) <= 10:
-                continue
-            best = 0.0
-            for mask in range(1, 2 ** len(members)):
-                team = [i for k, i in enumerate(members) if mask >> k & 1]
-                if bool((view.supply[b, team].sum(0) >= view.demand[b, j] - 1e-5).all()):
-                    best = max(best, float(view.reward[b, j] - view.pair_cost[b, team, j].sum()))
-            assert float(exact.profit[b, j]) == pytest.approx(best, abs=1e-4), (b, j)
-            checked += 1
-    improved = exact.profit > exact.base
-    assert checked > 10 and bool(improved.any()), "no task checked or improved: the case checks nothing"
-    tf = teacher_forced(view, task_of, exact.rank)
-    assert tf is not None
-    th.testing.assert_close(tf.reward.sum(0)[improved], exact.profit[improved], atol=1e-4, rtol=1e-5)
-    found = losses.select_search_loss(model.selector, view, candidates, samples=1, temperature=1.0, method="exact")
-    assert float(found.loss.detach()) > 0 and float(found.improved) > 0
-    for bad in ({"select_search_method": "best"}, {"select_search_batch_size": 0}):
-        with pytest.raises(ValueError, match=next(iter(bad))):
-            TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", **bad)
-    model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/MT-v0", select_search_coef=1.0, select_search_method="exact", select_search_batch_size=2,
-        learning_starts=30, batch_size=8, select_batch_size=4, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16},
-    )  # fmt: skip
-    solved: list[int] = []
-    real = losses.select_search_loss
-
-    def counted(selector: object, view: ObsView, *args: object) -> object:
-        solved.append(len(view.reward))
-        return real(selector, view, *args)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(losses, "select_search_loss", counted)
-    model.learn(60)
-    assert model.logger.name_to_value["train/select_search_improved"] >= 0
-    assert solved and set(solved) == {2}  # the term sees select_search_batch_size rows of the select minibatch
 
 
 def test_distill_select_teaches_the_pointer_the_exact_cover():
@@ -938,93 +801,9 @@ def test_cover_imitation_loss_as_a_set():
     assert float(losses.cover_imitation_loss(head, round_view, task_of, found.rank, th.zeros_like(labelled), True)) == 0.0
 
 
-def test_counterfactual_transitions_differ_from_the_replayed_ones_only_by_the_decision():
-    """``counterfactual_rate`` (implementation detail 17): at a branched step each env's copy takes a second sampled
-    decision from the same state and the same random state, so where both decisions agree the two transitions are
-    identical, and where they differ only the decision explains the difference."""
-    model = TwoStageSAC(
-        "TAMPolicy", make_vec_env("TaskAlloc/EPT-v0", n_envs=2, seed=0), counterfactual_rate=1.0, learning_starts=1000,
-        seed=0, device="cpu",
-    )  # fmt: skip
-    model.learn(60)
-    branched, replayed = model.counterfactual_buffer, model.replay_buffer
-    assert branched is not None
-    n = replayed.size()
-    assert n == 30 and branched.size() == 2 * n  # rate 1: every step of both envs branches, row for row
-    for key, stored in replayed.observations.items():
-        np.testing.assert_array_equal(branched.observations[key][:n], stored[:n])  # the same states
-    same = (branched.candidates[:n] == replayed.candidates[:n]).all(axis=(2, 3))
-    same &= (branched.pick_rank[:n] == replayed.pick_rank[:n]).all(axis=(2, 3))
-    assert 0 < same.sum() < same.size  # some decisions agree, some differ
-    np.testing.assert_array_equal(branched.rewards[:n][same], replayed.rewards[:n][same])
-    np.testing.assert_array_equal(branched.dones[:n][same], replayed.dones[:n][same])
-    for key, stored in replayed.next_observations.items():
-        np.testing.assert_array_equal(branched.next_observations[key][:n][same], stored[:n][same])
-    assert not np.array_equal(branched.rewards[:n][~same], replayed.rewards[:n][~same])
-
-
 def _almighty() -> gym.Env:
     import envs  # noqa: F401  (a subprocess registers the ids itself)
 
     return gym.make("TaskAlloc/Almighty-v0")
 
 
-def test_counterfactual_rows_follow_the_replayed_ones():
-    """With the paired term the stage-1 minibatch is the replayed rows, then K replayed rows and the K branched rows of
-    the same states, both one-step, with γ as the discount of the one-step rows beside n-step rows; training runs on it
-    and logs the term. Without it the K branched rows alone follow. A row the replay buffer overwrites without a branch
-    loses its pair. Bad settings are named."""
-    model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=8, counterfactual_coef=1.0,
-        n_steps=2, learning_starts=20, batch_size=16, seed=0, device="cpu",
-    )  # fmt: skip
-    model.learn(40)
-    buffer = model.counterfactual_buffer
-    assert buffer is not None and 0 < buffer.size() < 40
-    assert "train/paired_critic_loss" in model.logger.name_to_value
-    data, n_pairs = model._sample(16)
-    assert n_pairs == 8 and data.rewards.shape == (32, 1) and data.candidates.shape[0] == 32
-    for value in data.observations.values():
-        th.testing.assert_close(value[16:24], value[24:32])  # the pairs share their states
-    assert data.discounts is not None
-    th.testing.assert_close(data.discounts[16:], th.full((16, 1), model.gamma))  # both rows of a pair are one-step
-    assert bool((data.discounts[:16] <= model.gamma).all())
-    model.counterfactual_coef = 0.0
-    data, n_pairs = model._sample(16)
-    assert n_pairs == 0 and data.rewards.shape == (24, 1)
-    rows = np.flatnonzero(buffer.branched[:, 0])
-    model._branched = False
-    model.replay_buffer.pos = int(rows[0])
-    N, M = buffer.n_entities, buffer.n_tasks
-    model._store_transition(model.replay_buffer, np.zeros((1, N + 2 * M * N), np.int64), model._last_obs, np.zeros(1),
-                            np.zeros(1, bool), [{"commitment_reward": 0.0}])  # fmt: skip
-    assert not buffer.branched[rows[0], 0] and buffer.size() == len(rows) - 1
-    for rate in (-0.1, 1.5, float("nan")):
-        with pytest.raises(ValueError, match="counterfactual_rate"):
-            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=rate)
-    with pytest.raises(ValueError, match="counterfactual_coef"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_coef=-1.0)
-    with pytest.raises(ValueError, match="counterfactual_batch_size"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=0.5, counterfactual_batch_size=0)
-    venv = SubprocVecEnv([_almighty])
-    try:
-        with pytest.raises(ValueError, match="DummyVecEnv"):
-            TwoStageSAC("TAMPolicy", venv, counterfactual_rate=0.5)
-    finally:
-        venv.close()
-
-
-def test_paired_critic_loss_fits_the_difference():
-    """½ Σ_k mean((Q^k(s, c) − Q^k(s, c′)) − (y − y′))² on the pair rows only; a value shared by both rows of a pair (the
-    state's) does not enter it."""
-    g = th.Generator().manual_seed(0)
-    q1, q2, y = (th.randn(10, generator=g) for _ in range(3))
-    loss = losses.paired_critic_loss((q1, q2), y, start=4, n_pairs=3)
-    gap = y[4:7] - y[7:10]
-    expected = 0.5 * (((q1[4:7] - q1[7:10]) - gap) ** 2).mean() + 0.5 * (((q2[4:7] - q2[7:10]) - gap) ** 2).mean()
-    th.testing.assert_close(loss, expected)
-    shift = th.zeros(10)
-    shift[4:7] = shift[7:10] = th.randn(3, generator=g) * 100
-    th.testing.assert_close(losses.paired_critic_loss((q1 + shift, q2 + shift), y, 4, 3), loss)
-    q1[:4] += 5.0  # the replayed rows before the pairs
-    th.testing.assert_close(losses.paired_critic_loss((q1, q2), y, 4, 3), loss)

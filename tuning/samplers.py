@@ -37,9 +37,10 @@ def convert_two_stage_sac_params(sampled_params: dict[str, Any]) -> dict[str, An
     hyperparams: dict[str, Any] = {}
     if "one_minus_gamma" in params:
         hyperparams["gamma"] = 1.0 - params.pop("one_minus_gamma")
-    for name in ("batch_size", "select_batch_size"):
-        if f"{name}_pow" in params:
-            hyperparams[name] = 2 ** int(params.pop(f"{name}_pow"))
+    if "batch_size_pow" in params:
+        hyperparams["batch_size"] = 2 ** int(params.pop("batch_size_pow"))
+    if "select_batch_size_pow" in params:
+        hyperparams["select_kwargs"] = {"batch_size": 2 ** int(params.pop("select_batch_size_pow"))}
     policy_kwargs = {key: params.pop(key) for key in ("hidden_dim", "n_attention_layers") if key in params}
     if policy_kwargs:
         hyperparams["policy_kwargs"] = policy_kwargs

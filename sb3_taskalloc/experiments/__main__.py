@@ -86,21 +86,13 @@ def main(argv: list[str] | None = None) -> None:
         "--zero-shot", default=None, metavar="ENV", help="then run the trained models on ENV (e.g. RBF-EntityShift) untrained"
     )
     learn.add_argument(
-        "--decision-samples", type=int, default=1, metavar="K",
-        help="then evaluate the trained and untrained models deciding with a search of K pre-assignments (and on --zero-shot)",
+        "--decoder", default="argmax", metavar="NAME",
+        help="then evaluate the trained and untrained models decoded by this strategy (sb3_taskalloc.two_stage_sac."
+        "decoding: argmax, sampled, preassign_search, team_search, exact_covers, exact_top; and on --zero-shot)",
     )  # fmt: skip
     learn.add_argument(
-        "--select-decision-samples", type=int, default=1, metavar="K",
-        help="then evaluate them deciding with a search of K teams per task (with --decision-samples: both searches)",
-    )  # fmt: skip
-    learn.add_argument(
-        "--select-decision-exact", action="store_true",
-        help="then evaluate them with each task's exact cover of its candidates at decision time (with the searches above)",
-    )  # fmt: skip
-    learn.add_argument(
-        "--decision-exact-top", type=int, default=0, metavar="K",
-        help="then evaluate them pre-assigning by the exact cover of each entity's K most probable tasks (with the team "
-        "searches above; not with --decision-samples)",
+        "--decoder-kwargs", type=yaml_mapping, default={}, metavar="YAML",
+        help="settings of --decoder, e.g. '{samples: 32}'",
     )  # fmt: skip
     learn.add_argument(
         "--more-episodes", type=int, default=0, metavar="N",
@@ -139,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    from sb3_taskalloc.experiments.learn import DECISION_SEARCHES, PLANNERS, LearnRun
+    from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
@@ -163,15 +155,12 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
                    first_seed=args.first_seed, device=args.device)  # fmt: skip
     if args.steps < (0 if run.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
         parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
-    for flag, least in (
-        ("decision_samples", 1),
-        ("select_decision_samples", 1),
-        ("decision_exact_top", 0),
-    ):
-        if getattr(args, flag) < least:
-            parser.error(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")
-    if args.decision_exact_top and args.decision_samples > 1:
-        parser.error("--decision-exact-top and --decision-samples both choose the pre-assignment: give one of them")
+    from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
+
+    try:  # before any training
+        get_decoding_strategy(args.decoder, **args.decoder_kwargs)
+    except ValueError as error:
+        parser.error(f"--decoder: {error}")
     try:  # before any training
         run.check_more_episodes(args.more_episodes)
     except ValueError as error:
@@ -180,9 +169,9 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
     evaluations: list[tuple[str | None, dict[str, Any]]] = [(args.zero_shot, {})] if args.zero_shot else []
-    searches = {name: getattr(args, name) for name, (off, _) in DECISION_SEARCHES.items() if getattr(args, name) != off}
-    if searches:
-        evaluations += [(None, searches), *([(args.zero_shot, searches)] if args.zero_shot else [])]
+    if args.decoder != "argmax":
+        decoded = {"decoder": args.decoder, "decoder_kwargs": args.decoder_kwargs}
+        evaluations += [(None, decoded), *([(args.zero_shot, decoded)] if args.zero_shot else [])]
     if args.more_episodes:
         evaluations.append((None, {"more_episodes": args.more_episodes}))
     for shift, searched in evaluations:

@@ -102,7 +102,7 @@ BUDGETS: dict[str, Budget] = {
         1,
         1,
         {"population": 4, "budget": 20, "horizon": 3, "tail": 2},
-        sac={"learning_starts": 10, "batch_size": 8, "select_batch_size": 4, "policy_kwargs": {"hidden_dim": 16}},
+        sac={"learning_starts": 10, "batch_size": 8, "select_kwargs": {"batch_size": 4}, "policy_kwargs": {"hidden_dim": 16}},
         ppo={"n_steps": 16, "batch_size": 8, "n_epochs": 1},
         milp={"time_limit": 0.5},
         max_episode_steps=8,
@@ -182,13 +182,15 @@ def zoo_dagger(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
 
 
 def over_zoo(env_id: str, overrides: dict[str, Any]) -> dict[str, Any]:
-    """The env's zoo hyperparameters (:func:`zoo_hyperparameters`) with ``overrides`` on top. ``policy_kwargs`` merge
-    key by key: overriding one policy keyword (``{policy_kwargs: {select_pair_hidden: 64}}``) keeps the block's others
-    (its ``rounds``, its rule), as overriding one algorithm keyword keeps the rest of the block."""
+    """The env's zoo hyperparameters (:func:`zoo_hyperparameters`) with ``overrides`` on top. The settings mappings
+    (``policy_kwargs``, ``select_kwargs``) merge key by key: overriding one policy keyword (``{policy_kwargs:
+    {hidden_dim: 128}}``) keeps the block's others (its ``rounds``, its rule), as overriding one algorithm keyword keeps
+    the rest of the block."""
     block = zoo_hyperparameters(env_id)
     merged = {**block, **overrides}
-    if isinstance(block.get("policy_kwargs"), dict) and isinstance(overrides.get("policy_kwargs"), dict):
-        merged["policy_kwargs"] = {**block["policy_kwargs"], **overrides["policy_kwargs"]}
+    for key in ("policy_kwargs", "select_kwargs"):
+        if isinstance(block.get(key), dict) and isinstance(overrides.get(key), dict):
+            merged[key] = {**block[key], **overrides[key]}
     return merged
 
 

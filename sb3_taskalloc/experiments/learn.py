@@ -67,27 +67,6 @@ CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "fre
 CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_corr", "advantage_ceiling", "advantage_sign"]
 
 
-#: The decision-time searches of :meth:`LearnRun.reevaluate`, in the order of its file names: each
-#: :class:`~sb3_taskalloc.TAMPolicy` keyword's value when off, and the words of the report's title when on.
-DECISION_SEARCHES: dict[str, tuple[int | bool, str]] = {
-    "decision_samples": (1, "decision-time search of {} pre-assignments"),
-    "select_decision_samples": (1, "decision-time search of {} teams per task"),
-    "select_decision_exact": (False, "each task's exact cover of its candidates at decision time"),
-    "decision_exact_top": (0, "pre-assigned by the exact cover among each entity's top {} tasks at decision time"),
-}
-FIRST_SEARCHES = ("decision_samples", "select_decision_samples")
-#: Version of each search's decision rule. A re-evaluation row is reused only for the same model file, the same
-#: decisions on the fingerprint states (:func:`decision_digest`, which sees any change of code or solver that moves
-#: them) and the same versions of the searches it ran (rows saved before these numbers existed count as version 1): a
-#: change to what a search decides that the fingerprint states may not show increases its number here. Version 2 of
-#: the exact searches stops each HiGHS solve at a node limit instead of at 1 s
-#: (:data:`~sb3_taskalloc.two_stage_sac.select_stage.EXACT_NODE_LIMIT`), which changes only the hard steps. Version 3
-#: solves each task's team by branch and bound where the pairs separate (:func:`~sb3_taskalloc.baselines.milp.max_profit_team`:
-#: the exact covers, and the exact pre-assignment among each entity's top task), which may send another of equally
-#: profitable teams.
-SEARCH_RULES: dict[str, int] = {**dict.fromkeys(DECISION_SEARCHES, 1), "select_decision_exact": 3, "decision_exact_top": 3}
-
-
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
     """Whether every record holds the critic's figures ``keys`` of the branched rollouts (:data:`CRITIC_BRANCHED`, or
     :data:`CRITIC_ADVANTAGE`: each set came with a later version of :mod:`.diagnose`)."""
@@ -168,15 +147,16 @@ def decision_digest(agent: Any, env_id: str, seeds: Iterable[int] = FINGERPRINT_
     return digest.hexdigest()[:16]
 
 
-def _reevaluation_labels(shift: str | None, on: list[tuple[str, Any]], more_episodes: int) -> tuple[str, str, str]:
+def _reevaluation_labels(shift: str | None, decoder: str, config: dict[str, Any], more_episodes: int) -> tuple[str, str, str]:
     """The file-name suffix, the title's words and the command-line flags of a :meth:`LearnRun.reevaluate`, from its
-    parts in one order: the shift, each search that is on (``(name, value)``), the further episodes."""
+    parts in one order: the shift, the decoding strategy unless it is the argmax, the further episodes."""
     parts: list[tuple[str, str]] = []  # (file-name part, flag) of each part that is on
     if shift:
         parts.append((f"zero_shot_{shift}", f"zero-shot {shift}"))
-    for name, value in on:
-        arg = "" if value is True else f" {value}"
-        parts.append((name + arg.replace(" ", "_"), name.replace("_", "-") + arg))
+    if decoder != "argmax":
+        settings = "".join(f"_{k}_{v}" for k, v in sorted(config.items()))
+        flag = f"decoder {decoder}" + (f" --decoder-kwargs '{json.dumps(config)}'" if config else "")
+        parts.append((f"decoder_{decoder}{settings}", flag))
     if more_episodes:
         parts.append((f"more_episodes_{more_episodes}", f"more-episodes {more_episodes}"))
     first = "held-out episodes"
@@ -184,8 +164,8 @@ def _reevaluation_labels(shift: str | None, on: list[tuple[str, Any]], more_epis
         first = "zero-shot"
     elif more_episodes:
         first = f"{more_episodes} further held-out episodes per seed"
-    title = ", ".join([first, *(DECISION_SEARCHES[name][1].format(value) for name, value in on)])
-    return "".join(f"_{part}" for part, _ in parts), title, "".join(f" --{flag}" for _, flag in parts)
+    words = [first] if decoder == "argmax" else [first, f"decoded by {decoder} {config or ''}".rstrip()]
+    return "".join(f"_{part}" for part, _ in parts), ", ".join(words), "".join(f" --{flag}" for _, flag in parts)
 
 
 def _one_thread(parent: int) -> None:
@@ -709,20 +689,16 @@ class LearnRun:
     def reevaluate(
         self,
         shift: str | None = None,
-        decision_samples: int = 1,
-        select_decision_samples: int = 1,
-        select_decision_exact: bool = False,
-        decision_exact_top: int = 0,
+        decoder: str = "argmax",
+        decoder_kwargs: dict[str, Any] | None = None,
         more_episodes: int = 0,
     ) -> Path:
         """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
-        env (``shift``, zero-shot) or of the training env, deciding with the decision-time searches of
-        :class:`~sb3_taskalloc.TAMPolicy`'s keywords of these names (:data:`DECISION_SEARCHES`; their defaults: the
-        argmax), against Greedy (and the per-step MILP on the training env); writes ``<out>/<env>[_zero_shot_<shift>]``
-        followed by each search that is on (``_decision_samples_<K>``, ``_select_decision_exact``, ...), ``.md`` and
-        ``.json``. Training is untouched: its sampled decisions never search. Each seed's row is saved as it finishes,
-        under a digest of its model file, of the model's decisions with the searches on a few fixed states
-        (:func:`decision_digest`) and the versions of the searches' rules (:data:`SEARCH_RULES`), so an interrupted
+        env (``shift``, zero-shot) or of the training env, both decoded by the strategy ``decoder`` with
+        ``decoder_kwargs`` (:mod:`~sb3_taskalloc.two_stage_sac.decoding`), against Greedy (and the per-step MILP on the
+        training env); writes ``<out>/<env>[_zero_shot_<shift>][_decoder_<name>...]``, ``.md`` and ``.json``. Training
+        is untouched: its sampled decisions never search. Each seed's row is saved as it finishes, under a digest of its
+        model file and of the model's decisions on a few fixed states (:func:`decision_digest`), so an interrupted
         re-evaluation resumes at the seed it stopped in and a change of code that moves those decisions evaluates again.
 
         :param more_episodes: instead, the plain argmax on this many further held-out episodes per seed of the training
@@ -732,21 +708,16 @@ class LearnRun:
         :return: the Markdown path."""
         from sb3_taskalloc import TwoStageSAC
         from sb3_taskalloc import baselines as b
+        from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
 
         env_id = f"TaskAlloc/{shift}-v0" if shift else self.env_id
-        values = dict(zip(DECISION_SEARCHES, (decision_samples, select_decision_samples, select_decision_exact,
-                                              decision_exact_top), strict=True))  # fmt: skip
-        on = [(name, value) for name, value in values.items() if value != DECISION_SEARCHES[name][0]]
+        config = dict(decoder_kwargs or {})
+        strategy = get_decoding_strategy(decoder, **config)  # a bad name or setting fails before any evaluation
         self.check_more_episodes(more_episodes)
-        if more_episodes and (shift or on):
-            raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no search")
-        suffix, how, flags = _reevaluation_labels(shift, on, more_episodes)
+        if more_episodes and (shift or decoder != "argmax"):
+            raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no decoder")
+        suffix, how, flags = _reevaluation_labels(shift, decoder, config, more_episodes)
         stem = Path(self.out) / (self.env + suffix)
-        # The first two searches are always named, the others only when on, so earlier searches' files keep their contents.
-        searches: dict[str, Any] = {
-            name: value for name, value in values.items() if (name, value) in on or name in FIRST_SEARCHES
-        }
-        rules = {name: SEARCH_RULES[name] for name, _ in on}
         rows: list[dict[str, Any]] = []
         for seed in self.seed_range:
             path = self.seed_path(seed).with_suffix(".zip")
@@ -754,28 +725,26 @@ class LearnRun:
                 raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
             model_digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
             trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
-            for name, value in searches.items():
-                setattr(trained.policy, name, value)
+            trained.set_decoder(decoder, **config)
             decisions = decision_digest(trained, env_id)
             done = self.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{self.key}.json")
             saved = json.loads(done.read_text()) if done.exists() else {}
-            same = saved.get("model_digest") == model_digest and saved.get("decisions", decisions) == decisions
-            if same and saved.get("rules", dict.fromkeys(rules, 1)) == rules:  # rows saved before either key: as they were
+            if saved.get("model_digest") == model_digest and saved.get("decisions") == decisions:
                 rows.append(saved)
                 continue
             seeds = eval_seeds(seed, self.eval_episodes + more_episodes)[self.eval_episodes if more_episodes else 0 :]
-            kwargs = {**trained.policy_kwargs, **searches}
-            untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=kwargs)
+            untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=trained.policy_kwargs)
+            untrained.set_decoder(get_decoding_strategy(decoder, **config))
             row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
                    "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
             if shift or more_episodes:  # the per-step MILP takes seconds per step: the training env's held-out episodes only
                 row["Greedy"] = episode_returns(b.GreedyAllocator(), env_id, seeds)
             else:
                 row.update(self.baselines(seed))
-            row["model_digest"], row["rules"], row["decisions"] = model_digest, rules, decisions
+            row["model_digest"], row["decisions"] = model_digest, decisions
             atomic_write_text(done, json.dumps(row) + "\n")
             rows.append(row)
-        settings = {"settings": self.describe(), "env": env_id, **searches, "seeds": rows}
+        settings = {"settings": self.describe(), "env": env_id, "decoder": repr(strategy), "seeds": rows}
         atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
         columns = ["untrained", "trained", "Greedy", *([] if shift or more_episodes else ["MILP"])]
         means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}

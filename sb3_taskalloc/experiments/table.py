@@ -281,7 +281,7 @@ class TableRun:
         policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **method.kwargs}
         if not policy_kwargs.get("preassign", True):
             # W/o Pre decodes the tasks from one shared pool: their teams cannot be searched one task at a time (detail 18).
-            kwargs.pop("select_search_coef", None)
+            kwargs["select_kwargs"] = {**kwargs.get("select_kwargs", {}), "search_coef": 0.0}
         if not starts_at_rule(policy_kwargs):
             # An actor that starts at random weights (W/o TAM) learns even where the block holds the rule's (detail 23).
             kwargs.pop("train_preassign_actor", None)

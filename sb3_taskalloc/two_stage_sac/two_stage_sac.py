@@ -237,6 +237,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom", category=UserWarning)
             super()._setup_model()
         self._create_aliases()
+        if self.select_kwargs["search_coef"] > 0 and not self.policy.preassign:
+            raise ValueError(
+                "select_kwargs['search_coef'] needs a pre-assigning policy: without pre-assignment (W/o Pre) the tasks pick "
+                "from one shared pool, so their teams cannot be searched independently; set it to 0"
+            )
         if not self.train_preassign_actor and self.actor is not None and not self.policy.preassign_rule:
             raise ValueError(
                 "train_preassign_actor=False holds the pre-assign actor at its initial weights, and this policy's actor "

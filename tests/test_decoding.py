@@ -1,0 +1,119 @@
+"""Decoding strategies by name: each equals the constructor option it replaces on a model saved before the change, and
+a model saved with those options loads with its search as its decoder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.save_util import load_from_zip_file
+
+import envs  # noqa: F401  (registers the TaskAlloc ids)
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.two_stage_sac.decoding import DECODERS, Decoder, get_decoding_strategy, register_decoder
+
+DATA = Path(__file__).parent / "data"
+#: Made by ``tests/data/make_legacy_fixtures.py`` at commit 632165d, with each option set as a TAMPolicy attribute.
+LEGACY_MODEL = DATA / "legacy_rbf_decision_samples4.zip"
+LEGACY_DECISIONS = DATA / "legacy_decisions.npz"
+
+#: fixture name -> (strategy, settings): the strategy that replaces each old option.
+EQUIVALENT = {
+    "argmax": ("argmax", {}),
+    "preassign_search": ("preassign_search", {"samples": 8, "temperature": 2.0}),
+    "team_search": ("team_search", {"samples": 32, "temperature": 3.0}),
+    "exact_covers": ("exact_covers", {}),
+    "team_search_exact": ("team_search", {"samples": 8, "exact": True}),
+    "exact_top1": ("exact_top", {"top": 1}),
+    "exact_top2": ("exact_top", {"top": 2}),
+}
+
+
+@pytest.fixture(scope="module")
+def legacy() -> tuple[TwoStageSAC, dict[str, np.ndarray]]:
+    with pytest.warns(UserWarning, match="decoding strategy"):
+        model = TwoStageSAC.load(LEGACY_MODEL, device="cpu")
+    saved = dict(np.load(LEGACY_DECISIONS))
+    return model, saved
+
+
+def _obs(saved: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: v for k, v in saved.items() if k == "action_mask" or not k.startswith("action_")}
+
+
+def test_old_model_loads_with_its_search_as_its_decoder(legacy):
+    """The model was saved with ``decision_samples=4`` among its policy keywords: it loads with the pre-assignment
+    search of 4 as its decoder, its other keywords converted, and no removed keyword left in its settings."""
+    model, _ = legacy
+    assert model.policy.decoder.name == "preassign_search" and model.policy.decoder.samples == 4
+    assert model.policy_kwargs == {"rounds": 2, "hidden_dim": 16}
+    assert model.select_kwargs["batch_size"] == 16 and model.select_kwargs["prior_coef"] == 3.0
+    params = model.policy._get_constructor_parameters()
+    assert not {"decision_samples", "select_scarcity", "select_pair_hidden"} & set(params)
+    assert not hasattr(model, "counterfactual_rate") and not hasattr(model, "select_batch_size")
+    data, _, _ = load_from_zip_file(LEGACY_MODEL, device="cpu")
+    assert data["policy_kwargs"]["decision_samples"] == 4  # the file itself is untouched
+
+
+@pytest.mark.parametrize("name", list(EQUIVALENT))
+def test_each_strategy_equals_the_option_it_replaces(legacy, name):
+    model, saved = legacy
+    strategy, config = EQUIVALENT[name]
+    action, _ = model.predict(_obs(saved), deterministic=True, decoder=get_decoding_strategy(strategy, **config))
+    np.testing.assert_array_equal(action, saved[f"action_{name}"])
+    assert model.policy.decoder.name == "preassign_search"  # a per-call decoder leaves the model's own in place
+
+
+def test_sampled_equals_the_stochastic_policy(legacy):
+    model, saved = legacy
+    th.manual_seed(7)
+    with model.decoding("sampled"):
+        action, _ = model.predict(_obs(saved), deterministic=True)
+    np.testing.assert_array_equal(action, saved["action_sampled"])
+
+
+def test_decoder_is_set_per_model_and_never_saved(tmp_path, legacy):
+    model, saved = legacy
+    model.set_decoder("team_search", samples=32, temperature=3.0)
+    try:
+        assert np.array_equal(model.predict(_obs(saved), deterministic=True)[0], saved["action_team_search"])
+        model.save(tmp_path / "m.zip")
+    finally:
+        model.set_decoder("preassign_search", samples=4)
+    loaded = TwoStageSAC.load(tmp_path / "m.zip", device="cpu")
+    assert loaded.policy.decoder.name == "argmax"
+    assert np.array_equal(loaded.predict(_obs(saved), deterministic=True)[0], saved["action_argmax"])
+
+
+def test_strategies_by_name_and_clear_errors():
+    assert {"argmax", "sampled", "preassign_search", "team_search", "exact_covers", "exact_top"} <= set(DECODERS)
+    with pytest.raises(ValueError, match="unknown decoding strategy 'beam'"):
+        get_decoding_strategy("beam")
+    with pytest.raises(ValueError, match="decoding strategy 'argmax'.*samples"):
+        get_decoding_strategy("argmax", samples=3)
+    with pytest.raises(ValueError, match="seed"):
+        get_decoding_strategy("team_search", seed=-1)
+    strategy = get_decoding_strategy("exact_top", top=3)
+    assert get_decoding_strategy(strategy) is strategy
+    assert get_decoding_strategy(type(strategy).name, **strategy.config).config == strategy.config
+
+
+def test_a_new_strategy_is_one_registered_class(legacy):
+    """A strategy registered by name is usable at once: here one that keeps every entity free."""
+    model, saved = legacy
+
+    @register_decoder
+    class Idle(Decoder):
+        name = "idle_for_test"
+
+        def preassign(self, policy, view, dist, first_round):
+            return th.full_like(view.entity_mask, -1, dtype=th.long), None
+
+    try:
+        action, _ = model.predict(_obs(saved), deterministic=True, decoder="idle_for_test")
+        M = saved["task_mask"].shape[1]
+        assert (action == M).all()
+    finally:
+        del DECODERS["idle_for_test"]
