@@ -190,12 +190,15 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
 
     block = zoo_hyperparameters("TaskAlloc/RBF-v0")
     assert block["policy_kwargs"]["rounds"] > 1  # what the merge must keep
-    merged = over_zoo("TaskAlloc/RBF-v0", {"tau": 0.05, "policy_kwargs": {"select_pair_hidden": 8, "hidden_dim": 32}})
-    assert merged["tau"] == 0.05 and merged["gamma"] == block["gamma"]
-    assert merged["policy_kwargs"] == {**block["policy_kwargs"], "select_pair_hidden": 8, "hidden_dim": 32}
+    merged = over_zoo(
+        "TaskAlloc/RBF-v0", {"tau": 0.03, "policy_kwargs": {"n_critics": 3, "hidden_dim": 32}, "select_kwargs": {"batch_size": 8}}
+    )
+    assert merged["tau"] == 0.03 and merged["train_preassign_actor"] == block["train_preassign_actor"]
+    assert merged["policy_kwargs"] == {**block["policy_kwargs"], "n_critics": 3, "hidden_dim": 32}
+    assert merged["select_kwargs"] == {**block["select_kwargs"], "batch_size": 8}
     assert over_zoo("TaskAlloc/RBF-v0", {}) == block
     runs = [LearnRun("RBF", 1, 0, 1, 1000, kwargs, out=str(tmp_path)) for kwargs in ({}, {"policy_kwargs": {"rounds": 1}})]
-    assert runs[0].hyperparameters == block and runs[1].hyperparameters["policy_kwargs"]["heuristic_init"]
+    assert runs[0].hyperparameters == block and runs[1].hyperparameters["policy_kwargs"]["rounds"] == 1
     assert runs[0].key != runs[1].key
     # A callback entry (rl-zoo3's key) is not passed on to TwoStageSAC: the DAgger callback is zoo_dagger's, with the
     # callback's defaults filled in; any other callback, or keywords the callback refuses, are named.
@@ -633,63 +636,45 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
     shifted = run.zero_shot("EPT-TaskShift").read_text()  # the saved models, untrained on another env
     assert "| seed | untrained | trained | Greedy |" in shifted and "trained ≥ Greedy:" in shifted
-    searched = run.reevaluate(decision_samples=4)  # the same models deciding with a search of 4 pre-assignments
-    assert searched.name == "EPT_decision_samples_4.md"
+    searched = run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4})  # the same models, searching
+    assert searched.name == "EPT_decoder_preassign_search_samples_4.md"
+    assert "--decoder preassign_search --decoder-kwargs '{\"samples\": 4}'`" in searched.read_text()
     assert "| seed | untrained | trained | Greedy | MILP |" in searched.read_text()
     rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
     assert [r["MILP"] for r in rows] == [r["MILP"] for r in data["seeds"]]  # the seeds' own held-out episodes
     with monkeypatch.context() as patched:  # each seed's row was saved: a second call evaluates nothing again
         patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("a finished seed was evaluated again"))
-        assert run.reevaluate(decision_samples=4).read_text() == searched.read_text()
-    saved = next(tmp_path.glob("EPT/EPT_decision_samples_4_seed_0_*.json"))
+        assert run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4}).read_text() == searched.read_text()
+    saved = next(tmp_path.glob("EPT/EPT_decoder_preassign_search_samples_4_seed_0_*.json"))
     saved.write_text(json.dumps({**rows[0], "trained": [-1.0, -1.0], "model_digest": "another model"}))
-    again = json.loads(run.reevaluate(decision_samples=4).with_suffix(".json").read_text())["seeds"]
-    assert again[0]["trained"] == rows[0]["trained"]  # a row of another model file is evaluated again
-    assert again[0]["rules"] == {"decision_samples": learn.SEARCH_RULES["decision_samples"]}
-    saved.write_text(json.dumps({k: v for k, v in again[0].items() if k != "rules"}))  # a row saved before the versions
-    with monkeypatch.context() as patched:
-        patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("a row of rule version 1 was evaluated again"))
-        run.reevaluate(decision_samples=4)
-        patched.setitem(learn.SEARCH_RULES, "decision_samples", 2)  # the search's rule changed: its rows are stale
-        with pytest.raises(pytest.fail.Exception, match="evaluated again"):
-            run.reevaluate(decision_samples=4)
+    again = json.loads(run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4}).with_suffix(".json").read_text())
+    assert again["seeds"][0]["trained"] == rows[0]["trained"]  # a row of another model file is evaluated again
+    assert again["decoder"] == "PreassignSearchDecoder(seed=0, samples=4, temperature=2.0)"
     from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
 
-    with monkeypatch.context() as patched:  # code that moves the decisions, with no rule version raised: stale too
+    with monkeypatch.context() as patched:  # code that moves the decisions: the rows are stale
         patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("evaluated again"))
-        run.reevaluate(decision_samples=4)  # the rows saved above, with their fingerprint
+        run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4})  # the rows saved above
         decide = TAMPolicy._predict
         patched.setattr(TAMPolicy, "_predict", lambda self, *a, **k: decide(self, *a, **k) + 1)
         with pytest.raises(pytest.fail.Exception, match="evaluated again"):
-            run.reevaluate(decision_samples=4)
+            run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4})
     from sb3_taskalloc import TwoStageSAC
 
     model = TwoStageSAC.load(run.seed_path(0).with_suffix(".zip"), device="cpu")
-    model.policy.decision_samples = 4
+    model.set_decoder("preassign_search", samples=4)
     assert json.loads(saved.read_text())["decisions"] == learn.decision_digest(model, "TaskAlloc/EPT-v0")
     assert learn.decision_digest(model, "TaskAlloc/EPT-v0") == learn.decision_digest(model, "TaskAlloc/EPT-v0")
-    both = run.reevaluate(decision_samples=2, select_decision_samples=3)  # and a search of 3 teams per task
-    assert both.name == "EPT_decision_samples_2_select_decision_samples_3.md"
-    assert "--decision-samples 2 --select-decision-samples 3`" in both.read_text()
-    assert json.loads(both.with_suffix(".json").read_text())["select_decision_samples"] == 3
-    import sb3_taskalloc.two_stage_sac.policies as policies
-    from sb3_taskalloc.two_stage_sac.select_stage import cover_search
+    import sb3_taskalloc.two_stage_sac.decoding as decoding
 
     solved = []  # each task's exact cover of its candidates, solved at decision time
-    monkeypatch.setattr(policies, "cover_search", lambda *a, **k: solved.append(1) or cover_search(*a, **k))
-    exact = run.reevaluate(select_decision_exact=True)
+    cover_search = decoding.cover_search
+    monkeypatch.setattr(decoding, "cover_search", lambda *a, **k: solved.append(1) or cover_search(*a, **k))
+    exact = run.reevaluate(decoder="exact_covers")
     assert len(solved) > 0
-    assert exact.name == "EPT_select_decision_exact.md" and "--select-decision-exact`" in exact.read_text()
-    assert json.loads(exact.with_suffix(".json").read_text())["select_decision_exact"] is True
-    from sb3_taskalloc.two_stage_sac.select_stage import exact_covers
-
-    pruned = []  # the pre-assign rounds' exact covers of each entity's 2 most probable tasks
-    monkeypatch.setattr(policies, "exact_covers", lambda *a, **k: pruned.append(int(a[1].sum())) or exact_covers(*a, **k))
-    top = run.reevaluate(decision_exact_top=2)
-    assert len(pruned) > 0 and max(pruned) > 0
-    assert top.name == "EPT_decision_exact_top_2.md" and "--decision-exact-top 2`" in top.read_text()
-    assert "each entity's top 2 tasks" in top.read_text()
-    assert json.loads(top.with_suffix(".json").read_text())["decision_exact_top"] == 2
+    assert exact.name == "EPT_decoder_exact_covers.md" and "--decoder exact_covers`" in exact.read_text()
+    with pytest.raises(ValueError, match="unknown decoding strategy"):
+        run.reevaluate(decoder="beam")
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.
@@ -863,7 +848,7 @@ def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monke
         with pytest.raises(ValueError, match=match):
             run.reevaluate(more_episodes=bad)
     with pytest.raises(ValueError, match="no shift and no search"):
-        run.reevaluate(decision_samples=2, more_episodes=2)
+        run.reevaluate(decoder="team_search", more_episodes=2)
     monkeypatch.setattr(learn.LearnRun, "run", lambda *a, **k: pytest.fail("trained before the arguments were checked"))
     argv = ["learn", "--env", "Almighty", "--seeds", "1", "--steps", "3", "--eval-episodes", "2", "--out", str(tmp_path)]
     for more in ("-1", "99"):

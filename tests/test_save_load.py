@@ -25,13 +25,7 @@ def observations(env_id: str, n: int = 5, **kwargs) -> list[dict[str, np.ndarray
         {"preassign": False},
         {"encoder": "mlp"},
         {"mixer": "global"},
-        {"rounds": 2, "decision_samples": 8, "select_decision_samples": 4},
-        {"select_decision_exact": True},
-        # k = 1: per-task covers, quick to solve (k = 2 over RBF's 100 robots decides the same after a reload too, as
-        # every solve stops at a node limit, but takes about 15 s here)
-        {"rounds": 2, "decision_exact_top": 1},
-        {"select_pair_hidden": 8},
-        {"select_scarcity": True},
+        {"rounds": 2, "mixer_kwargs": {"monotonic": True, "hyper_bias": True, "team_value": False}},
     ],
 )
 def test_save_load_identical_predict(tmp_path, kwargs):
@@ -57,21 +51,30 @@ def test_save_load_identical_predict(tmp_path, kwargs):
     assert loaded.num_timesteps == steps + 6
 
 
-def test_counterfactual_rate_save_load_resume(tmp_path):
-    """The setting comes back; the branched transitions, like the replay buffer, are not saved: the loaded model starts
-    an empty buffer of them for its env count and fills it when training resumes."""
+@pytest.mark.parametrize(
+    ("decoder", "config"),
+    [
+        ("preassign_search", {"samples": 8}),
+        ("team_search", {"samples": 4}),
+        ("exact_covers", {}),
+        # top = 1: per-task covers, quick to solve (top = 2 over RBF's 100 robots decides the same after a reload too,
+        # as every solve stops at a node limit, but takes about 15 s here)
+        ("exact_top", {"top": 1}),
+    ],
+)
+def test_save_load_identical_predict_with_each_decoder(tmp_path, decoder, config):
+    """A decoder is no part of the saved model: set on the loaded one, it decides as on the original (the searches draw
+    from their own streams, seeded at 0)."""
     model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/Almighty-v0", counterfactual_rate=1.0, counterfactual_batch_size=4, learning_starts=6,
-        batch_size=8, seed=0, policy_kwargs=SMALL,
-    )  # fmt: skip
-    model.learn(10)
+        "TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=10, batch_size=8, seed=0, policy_kwargs={**SMALL, "rounds": 2}
+    )
+    model.learn(16)
     model.save(tmp_path / "model")
-    loaded = TwoStageSAC.load(tmp_path / "model", env=make_vec_env("TaskAlloc/Almighty-v0", n_envs=2, seed=1))
-    assert (loaded.counterfactual_rate, loaded.counterfactual_batch_size) == (1.0, 4)
-    assert loaded.counterfactual_buffer is not None and loaded.counterfactual_buffer.size() == 0
-    assert loaded.counterfactual_buffer.n_envs == 2
-    loaded.learn(10, reset_num_timesteps=False)
-    assert loaded.counterfactual_buffer.size() == 10  # 10 steps of 2 envs: 5 rows, every step branched
+    loaded = TwoStageSAC.load(tmp_path / "model")
+    for agent in (model, loaded):
+        agent.set_decoder(decoder, **config)
+    for obs in observations("TaskAlloc/RBF-v0"):
+        np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
 
 
 def test_replay_buffer_save_load(tmp_path):

@@ -40,7 +40,7 @@ def test_sampler_under_fixed_trial_builds_a_valid_model():
     trial = optuna.trial.FixedTrial(FIXED)
     kwargs = sample_two_stage_sac_params(trial, 25, 1, {})
     assert kwargs == convert_two_stage_sac_params(FIXED)
-    assert kwargs["gamma"] == pytest.approx(0.98) and kwargs["batch_size"] == 16 and kwargs["select_batch_size"] == 8
+    assert kwargs["gamma"] == pytest.approx(0.98) and kwargs["batch_size"] == 16 and kwargs["select_kwargs"] == {"batch_size": 8}
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, **kwargs)
     assert model.policy.hidden_dim == 32 and model.policy.n_attention_layers == 1 and model.gamma == pytest.approx(0.98)
     model.learn(20)
@@ -52,7 +52,7 @@ def test_sampled_values_stay_in_their_spaces():
     for _ in range(30):
         kwargs = sample_two_stage_sac_params(study.ask(), 25, 1, {})
         assert 0.9 <= kwargs["gamma"] <= 0.999 and 3e-5 <= kwargs["learning_rate"] <= 3e-3
-        assert kwargs["batch_size"] in (16, 32, 64, 128) and kwargs["select_batch_size"] in (4, 8, 16, 32)
+        assert kwargs["batch_size"] in (16, 32, 64, 128) and kwargs["select_kwargs"]["batch_size"] in (4, 8, 16, 32)
         assert all(isinstance(v, int | float | str | bool | dict) for v in kwargs.values())  # pastes into YAML
 
 

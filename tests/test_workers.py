@@ -94,7 +94,7 @@ def run_co_training(seed: int) -> tuple[TwoStageSAC, WorkerMarket]:
     kwargs = {
         "learning_starts": 30,
         "batch_size": 16,
-        "select_batch_size": 4,
+        "select_kwargs": {"batch_size": 4},
         "policy_kwargs": {"hidden_dim": 16},
         "device": "cpu",
     }

@@ -52,7 +52,11 @@ def test_configs_have_a_valid_block_per_env(name):
         if block.pop("callback", None) is not None:  # rl-zoo3's key: only the DAgger callback, which the experiments run
             zoo_dagger(env_id, CONFIGS / name)
         assert set(block) <= algo_args, set(block) - algo_args
-        assert set(block["policy_kwargs"]) <= policy_args
+        assert set(block.get("policy_kwargs", {})) <= policy_args
+        TwoStageSAC("TAMPolicy", env_id, **block, _init_setup_model=False)  # every setting passes the constructor's checks
+    # `default` lists only what differs from the constructor defaults.
+    defaults = {k: p.default for k, p in inspect.signature(TwoStageSAC.__init__).parameters.items()}
+    assert not {k: v for k, v in config["default"].items() if defaults.get(k, object()) == v}
     block = {k: v for k, v in config["TaskAlloc/Almighty-v0"].items() if k not in ("policy", "n_timesteps", "n_envs")}
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", **block)
     assert model.learning_rate == pytest.approx(1e-3) and model.policy.hidden_dim == 64

@@ -70,6 +70,29 @@ _DECODER_KEYS = (
 )
 
 
+def check_policy_kwargs(policy_class: type, policy_kwargs: dict[str, Any]) -> None:
+    """A clear error for a ``policy_kwargs`` key that ``policy_class`` does not take, naming where a moved or removed
+    option went."""
+    import inspect
+
+    accepted = set(inspect.signature(policy_class.__init__).parameters)
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in inspect.signature(policy_class.__init__).parameters.values()):
+        return
+    for key in policy_kwargs:
+        if key in accepted:
+            continue
+        if key in _DECODER_KEYS:
+            raise ValueError(
+                f"policy_kwargs[{key!r}]: how a trained model decides is its decoding strategy now, not a policy keyword: "
+                "model.set_decoder(name, **settings) (sb3_taskalloc.two_stage_sac.decoding)"
+            )
+        if key in MIXER_KEYS:
+            raise ValueError(f"policy_kwargs[{key!r}] is mixer_kwargs[{MIXER_KEYS[key]!r}] now")
+        if key in REMOVED_ARCHITECTURES:
+            raise ValueError(f"policy_kwargs[{key!r}] was removed (measured as not helping, docs/learning.md)")
+        raise ValueError(f"policy_kwargs: {policy_class.__name__} takes no keyword {key!r}; it takes {sorted(accepted - {'self'})}")
+
+
 def saved_data(path: str | pathlib.Path) -> dict[str, Any] | None:
     """The ``data`` of a saved model (its settings, without the weights), or None where there is no such file."""
     found = next((p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file()), None)

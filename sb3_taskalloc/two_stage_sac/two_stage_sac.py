@@ -196,6 +196,7 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             supported_action_spaces=(spaces.MultiDiscrete,),
             support_multi_env=True,
         )
+        legacy.check_policy_kwargs(self.policy_class, self.policy_kwargs)
         check_counts({"batch_size": batch_size, "target_update_interval": target_update_interval, "n_steps": n_steps})
         check_choices(
             {
