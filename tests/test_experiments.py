@@ -169,17 +169,17 @@ def test_table_trains_on_the_zoo_configs_n_envs(tmp_path, monkeypatch):
 
 
 def test_table_trains_w_o_pre_without_the_team_search(tmp_path, monkeypatch):
-    """A zoo block with ``select_search_coef`` (implementation detail 18, pre-assigning policies only) trains Ours with
+    """A zoo block with the team search (``select_kwargs["search_coef"]``, implementation detail 18, pre-assigning policies only) trains Ours with
     it and the W/o Pre columns, which decode from one shared pool, without it instead of failing."""
     from sb3_taskalloc.experiments import table
 
     zoo = table.zoo_hyperparameters
-    monkeypatch.setattr(table, "zoo_hyperparameters", lambda env_id: {**zoo(env_id), "select_search_coef": 1.0})
+    monkeypatch.setattr(table, "zoo_hyperparameters", lambda env_id: {**zoo(env_id), "select_kwargs": {"search_coef": 1.0}})
     run = TableRun("RBF", 1, "smoke", tmp_path, progress=False)
     log = tmp_path / "log.monitor.csv"
-    assert run._new_model(table.METHODS["Ours"], "TaskAlloc/RBF-v0", 0, log).select_search_coef == 1.0
+    assert run._new_model(table.METHODS["Ours"], "TaskAlloc/RBF-v0", 0, log).select_kwargs["search_coef"] == 1.0
     pooled = run._new_model(table.METHODS["W/o Pre (sequence)"], "TaskAlloc/RBF-v0", 0, log)
-    assert not pooled.policy.preassign and pooled.select_search_coef == 0.0
+    assert not pooled.policy.preassign and pooled.select_kwargs["search_coef"] == 0.0
 
 
 def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path):
@@ -847,7 +847,7 @@ def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monke
     for bad, match in ((-1, "more_episodes must be a positive integer"), (True, "positive integer"), (99, "at most 100")):
         with pytest.raises(ValueError, match=match):
             run.reevaluate(more_episodes=bad)
-    with pytest.raises(ValueError, match="no shift and no search"):
+    with pytest.raises(ValueError, match="no shift and no decoder"):
         run.reevaluate(decoder="team_search", more_episodes=2)
     monkeypatch.setattr(learn.LearnRun, "run", lambda *a, **k: pytest.fail("trained before the arguments were checked"))
     argv = ["learn", "--env", "Almighty", "--seeds", "1", "--steps", "3", "--eval-episodes", "2", "--out", str(tmp_path)]
