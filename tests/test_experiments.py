@@ -191,7 +191,8 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     block = zoo_hyperparameters("TaskAlloc/RBF-v0")
     assert block["policy_kwargs"]["rounds"] > 1  # what the merge must keep
     merged = over_zoo(
-        "TaskAlloc/RBF-v0", {"tau": 0.03, "policy_kwargs": {"n_critics": 3, "hidden_dim": 32}, "select_kwargs": {"batch_size": 8}}
+        "TaskAlloc/RBF-v0",
+        {"tau": 0.03, "policy_kwargs": {"n_critics": 3, "hidden_dim": 32}, "select_kwargs": {"batch_size": 8}},
     )
     assert merged["tau"] == 0.03 and merged["train_preassign_actor"] == block["train_preassign_actor"]
     assert merged["policy_kwargs"] == {**block["policy_kwargs"], "n_critics": 3, "hidden_dim": 32}
@@ -647,7 +648,9 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
         assert run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4}).read_text() == searched.read_text()
     saved = next(tmp_path.glob("EPT/EPT_decoder_preassign_search_samples_4_seed_0_*.json"))
     saved.write_text(json.dumps({**rows[0], "trained": [-1.0, -1.0], "model_digest": "another model"}))
-    again = json.loads(run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4}).with_suffix(".json").read_text())
+    again = json.loads(
+        run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4}).with_suffix(".json").read_text()
+    )
     assert again["seeds"][0]["trained"] == rows[0]["trained"]  # a row of another model file is evaluated again
     assert again["decoder"] == "PreassignSearchDecoder(seed=0, samples=4, temperature=2.0)"
     from sb3_taskalloc.two_stage_sac.policies import TAMPolicy

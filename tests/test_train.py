@@ -620,7 +620,12 @@ def test_team_value_closed_form_and_gradient():
     assert probs.grad is not None and probs.grad.abs().sum() > 0
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"mixer_kwargs": {"team_value": True}}, device="cpu")
     assert all(isinstance(q.team, TeamValue) for q in model.critic.q_networks)
-    assert TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"mixer_kwargs": {"team_value": False}}).critic.q_networks[0].team is None
+    assert (
+        TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", policy_kwargs={"mixer_kwargs": {"team_value": False}})
+        .critic.q_networks[0]
+        .team
+        is None
+    )
 
 
 def test_round_profit_is_the_commitment_reward():
@@ -705,7 +710,9 @@ def test_select_search_loss_distils_the_best_team():
         with pytest.raises(ValueError, match=next(iter(bad))):
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_kwargs=bad)
     with pytest.raises(ValueError, match="pre-assigning policy"):
-        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_kwargs={"search_coef": 1.0}, policy_kwargs={"preassign": False})
+        TwoStageSAC(
+            "TAMPolicy", "TaskAlloc/Almighty-v0", select_kwargs={"search_coef": 1.0}, policy_kwargs={"preassign": False}
+        )
     # The term runs inside training and its statistics reach the logger.
     model = TwoStageSAC(
         "TAMPolicy", "TaskAlloc/MT-v0", select_kwargs={"search_coef": 1.0, "search_samples": 4, "batch_size": 4},
@@ -805,5 +812,3 @@ def _almighty() -> gym.Env:
     import envs  # noqa: F401  (a subprocess registers the ids itself)
 
     return gym.make("TaskAlloc/Almighty-v0")
-
-

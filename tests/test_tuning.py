@@ -40,7 +40,9 @@ def test_sampler_under_fixed_trial_builds_a_valid_model():
     trial = optuna.trial.FixedTrial(FIXED)
     kwargs = sample_two_stage_sac_params(trial, 25, 1, {})
     assert kwargs == convert_two_stage_sac_params(FIXED)
-    assert kwargs["gamma"] == pytest.approx(0.98) and kwargs["batch_size"] == 16 and kwargs["select_kwargs"] == {"batch_size": 8}
+    assert (
+        kwargs["gamma"] == pytest.approx(0.98) and kwargs["batch_size"] == 16 and kwargs["select_kwargs"] == {"batch_size": 8}
+    )
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, **kwargs)
     assert model.policy.hidden_dim == 32 and model.policy.n_attention_layers == 1 and model.gamma == pytest.approx(0.98)
     model.learn(20)

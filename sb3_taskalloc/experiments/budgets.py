@@ -186,11 +186,16 @@ def over_zoo(env_id: str, overrides: dict[str, Any]) -> dict[str, Any]:
     (``policy_kwargs``, ``select_kwargs``) merge key by key: overriding one policy keyword (``{policy_kwargs:
     {hidden_dim: 128}}``) keeps the block's others (its ``rounds``, its rule), as overriding one algorithm keyword keeps
     the rest of the block."""
-    block = zoo_hyperparameters(env_id)
-    merged = {**block, **overrides}
+    return merge_settings(zoo_hyperparameters(env_id), overrides)
+
+
+def merge_settings(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """TwoStageSAC keywords ``overrides`` over ``base``; the settings mappings (``policy_kwargs``, ``select_kwargs``)
+    merge key by key."""
+    merged = {**base, **overrides}
     for key in ("policy_kwargs", "select_kwargs"):
-        if isinstance(block.get(key), dict) and isinstance(overrides.get(key), dict):
-            merged[key] = {**block[key], **overrides[key]}
+        if isinstance(base.get(key), dict) and isinstance(overrides.get(key), dict):
+            merged[key] = {**base[key], **overrides[key]}
     return merged
 
 

@@ -46,6 +46,7 @@ from sb3_taskalloc.experiments.budgets import (
     Method,
     config_key,
     env_settings,
+    merge_settings,
     row_env,
     zoo_dagger,
     zoo_hyperparameters,
@@ -239,7 +240,7 @@ class TableRun:
     def _sac_kwargs(self) -> dict[str, Any]:
         """TwoStageSAC keywords of every column and row: the training env's zoo block (on the presets too) under the
         budget's own."""
-        return {**self._zoo, **self.budget.sac}
+        return merge_settings(self._zoo, self.budget.sac)
 
     def _n_envs(self, method: Method) -> int:
         """Envs a column collects from at once: ``n_envs`` of :meth:`_sac_kwargs` (rl-zoo3's key) for TwoStageSAC."""

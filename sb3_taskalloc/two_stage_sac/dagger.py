@@ -107,6 +107,7 @@ def distill_select(
                 break
     return history
 
+
 def _label_rollouts(
     model: TwoStageSAC, vec_env: VecEnv, obs: Any, episodes: int, labels: list[_CoverLabel], done_episode: Any
 ) -> tuple[Any, dict[str, float]]:
@@ -148,6 +149,7 @@ def _label_rollouts(
     tasks = max(totals.pop("tasks"), 1.0)
     shares = {"improved": totals.pop("improved") / tasks, "gain": totals.pop("gain") / tasks}
     return obs, {"mean_return": float(np.mean(returns)), **totals, **shares}
+
 
 def _fit_labels(
     model: TwoStageSAC,

@@ -90,7 +90,9 @@ def check_policy_kwargs(policy_class: type, policy_kwargs: dict[str, Any]) -> No
             raise ValueError(f"policy_kwargs[{key!r}] is mixer_kwargs[{MIXER_KEYS[key]!r}] now")
         if key in REMOVED_ARCHITECTURES:
             raise ValueError(f"policy_kwargs[{key!r}] was removed (measured as not helping, docs/learning.md)")
-        raise ValueError(f"policy_kwargs: {policy_class.__name__} takes no keyword {key!r}; it takes {sorted(accepted - {'self'})}")
+        raise ValueError(
+            f"policy_kwargs: {policy_class.__name__} takes no keyword {key!r}; it takes {sorted(accepted - {'self'})}"
+        )
 
 
 def saved_data(path: str | pathlib.Path) -> dict[str, Any] | None:

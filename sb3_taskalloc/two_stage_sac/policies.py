@@ -289,10 +289,7 @@ class TAMPolicy(BasePolicy):
         self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
-            return [
-                PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True)
-                for _ in range(self.n_critics)
-            ]
+            return [PointerHead(Fe, K, self.hidden_dim, self.activation_fn, state_value=True) for _ in range(self.n_critics)]
 
         self.select_critic = SelectCritic(make_heads())
         self.select_critic.optimizer = self._make_optimizer(self.select_critic, lr)

@@ -297,9 +297,7 @@ class TeacherForcedRound(NamedTuple):
     dyn: th.Tensor  # (T, B, N, SELECT_DYN)
 
 
-def teacher_forced(
-    view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor
-) -> TeacherForcedRound | None:
+def teacher_forced(view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> TeacherForcedRound | None:
     """All states and transitions of a stored decoding round at once.
 
     Under teacher forcing every state is known in advance (remaining demand after t picks = relu(demand − Σ supplies of

@@ -1,11 +1,19 @@
 """Fixtures made with the constructor-option decoders (commit 632165d), for the decoding-strategy tests."""
+
 import numpy as np, torch as th, gymnasium as gym
 import envs  # noqa
 from sb3_taskalloc import TwoStageSAC
 
 env = gym.make("TaskAlloc/RBF-v0")
-model = TwoStageSAC("TAMPolicy", env, seed=0, buffer_size=64, learning_starts=8, batch_size=8,
-                    policy_kwargs={"rounds": 2, "decision_samples": 4, "hidden_dim": 16})
+model = TwoStageSAC(
+    "TAMPolicy",
+    env,
+    seed=0,
+    buffer_size=64,
+    learning_starts=8,
+    batch_size=8,
+    policy_kwargs={"rounds": 2, "decision_samples": 4, "hidden_dim": 16},
+)
 model.learn(16)
 model.save("tests/data/legacy_rbf_decision_samples4.zip")
 obs_list = []
@@ -23,8 +31,14 @@ options = {
     "exact_top1": {"decision_exact_top": 1},
     "exact_top2": {"decision_exact_top": 2},
 }
-defaults = dict(decision_samples=1, decision_temperature=2.0, select_decision_samples=1, select_decision_temperature=1.0,
-                select_decision_exact=False, decision_exact_top=0)
+defaults = dict(
+    decision_samples=1,
+    decision_temperature=2.0,
+    select_decision_samples=1,
+    select_decision_temperature=1.0,
+    select_decision_exact=False,
+    decision_exact_top=0,
+)
 out = {k: v for k, v in obs.items()}
 pol = model.policy
 for name, opts in options.items():
@@ -38,4 +52,5 @@ th.manual_seed(7)
 out["action_sampled"] = pol.predict(obs, deterministic=False)[0]
 np.savez_compressed("tests/data/legacy_decisions.npz", **out)
 print({k: v.shape for k, v in out.items()})
-for n in options: print(n, (out["action_"+n] != out["action_argmax"]).sum())
+for n in options:
+    print(n, (out["action_" + n] != out["action_argmax"]).sum())
