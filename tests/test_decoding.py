@@ -91,7 +91,7 @@ def test_strategies_by_name_and_clear_errors():
     assert {"argmax", "sampled", "preassign_search", "team_search", "exact_covers", "exact_top"} <= set(DECODERS)
     with pytest.raises(ValueError, match="unknown decoding strategy 'beam'"):
         get_decoding_strategy("beam")
-    with pytest.raises(ValueError, match="decoding strategy 'argmax'.*samples"):
+    with pytest.raises(ValueError, match=r"decoding strategy 'argmax'.*samples"):
         get_decoding_strategy("argmax", samples=3)
     with pytest.raises(ValueError, match="seed"):
         get_decoding_strategy("team_search", seed=-1)

@@ -169,8 +169,9 @@ def test_table_trains_on_the_zoo_configs_n_envs(tmp_path, monkeypatch):
 
 
 def test_table_trains_w_o_pre_without_the_team_search(tmp_path, monkeypatch):
-    """A zoo block with the team search (``select_kwargs["search_coef"]``, implementation detail 18, pre-assigning policies only) trains Ours with
-    it and the W/o Pre columns, which decode from one shared pool, without it instead of failing."""
+    """A zoo block with the team search (``select_kwargs["search_coef"]``, implementation detail 18, pre-assigning
+    policies only) trains Ours with it and the W/o Pre columns, which decode from one shared pool, without it instead of
+    failing."""
     from sb3_taskalloc.experiments import table
 
     zoo = table.zoo_hyperparameters

@@ -28,7 +28,8 @@ ENVS = ["TaskAlloc/Almighty-v0", "TaskAlloc/EPT-v0", "TaskAlloc/RBF-v0", "TaskAl
 
 def make_policy(env: gym.Env, decoder: str = "argmax", decoder_kwargs: dict | None = None, **kwargs) -> TAMPolicy:
     """A narrow TAMPolicy whose deterministic decisions are decoded by the strategy ``decoder``."""
-    policy = TAMPolicy(env.observation_space, env.action_space, lambda _: 1e-3, hidden_dim=16, **kwargs)  # type: ignore[arg-type]
+    space = env.observation_space
+    policy = TAMPolicy(space, env.action_space, lambda _: 1e-3, hidden_dim=16, **kwargs)  # type: ignore[arg-type]
     policy.decoder = get_decoding_strategy(decoder, **(decoder_kwargs or {}))
     return policy
 
@@ -210,7 +211,8 @@ def test_rounds_give_the_left_over_entities_the_untried_tasks():
 
 
 def test_preassign_search_takes_the_most_profitable_first_round():
-    """With the ``preassign_search`` decoder of K samples a deterministic decision's first round is the best, by the step's profit, of the argmax
+    """With the ``preassign_search`` decoder of K samples a deterministic decision's first round is the best, by the
+    step's profit, of the argmax
     and K − 1 pre-assignments from the policy's own stream (seeded at 0, so decisions are reproducible): never less
     profitable than the argmax, more in some of these RBF states; K = 1 is the argmax."""
     from sb3_taskalloc.two_stage_sac.select_stage import round_profit
@@ -257,7 +259,8 @@ def sent_task_profits(decision: Decision, view: ObsView) -> th.Tensor:
 
 
 def test_team_search_takes_each_tasks_most_profitable_team():
-    """With the ``team_search`` decoder of K_s samples each task of a deterministic decision sends the best, by its profit, of the
+    """With the ``team_search`` decoder of K_s samples each task of a deterministic decision sends the best, by its
+    profit, of the
     pointer's argmax team and K_s − 1 sampled ones: a team of its own candidates that covers it, never less profitable
     than the argmax's and more in some of these RBF tasks; reproducible, and sampled decisions do not search."""
     env = gym.make("TaskAlloc/RBF-v0")
@@ -319,7 +322,8 @@ def test_exact_covers_send_each_tasks_exact_cover():
 
 
 def test_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_tasks():
-    """With the ``exact_top`` decoder of k tasks each round of a deterministic decision pre-assigns by the exact most profitable
+    """With the ``exact_top`` decoder of k tasks each round of a deterministic decision pre-assigns by the exact most
+    profitable
     cover of the pairs joining each entity to one of its k most probable tasks: with k = 1 every candidate keeps its
     argmax task, the first round is as profitable as each task's exact cover of the argmax's candidates, the
     candidates of the tasks the solver does not cover are left free for the next round, and over three rounds the

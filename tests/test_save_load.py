@@ -155,7 +155,6 @@ def test_wrong_env_family_refused(tmp_path):
 
 
 def test_vec_normalize_refused():
-    from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
     venv = VecNormalize(make_vec_env("TaskAlloc/Almighty-v0", n_envs=1), norm_obs=False)

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import SubprocVecEnv
 from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
@@ -675,7 +674,8 @@ def forced_steps(head, view: ObsView, task_of: th.Tensor, rank: th.Tensor):
 
 
 def test_select_search_loss_distils_the_best_team():
-    """``select_kwargs["search_coef"]`` (implementation detail 18): per task, the search's team is at least as profitable as the
+    """``select_kwargs["search_coef"]`` (implementation detail 18): per task, the search's team is at least as
+    profitable as the
     deterministic one, its teacher-forced rewards add up to that profit, and the loss is −Σ_t log π(a*_t|s*_t) over the
     tasks it improves, recomputed here by stepping a :class:`SelectState` through the forced picks one at a time."""
     model, view, task_of = mt_argmax_round()

@@ -1,6 +1,9 @@
 """Fixtures made with the constructor-option decoders (commit 632165d), for the decoding-strategy tests."""
 
-import numpy as np, torch as th, gymnasium as gym
+import gymnasium as gym
+import numpy as np
+import torch as th
+
 import envs  # noqa
 from sb3_taskalloc import TwoStageSAC
 
@@ -18,7 +21,7 @@ model.learn(16)
 model.save("tests/data/legacy_rbf_decision_samples4.zip")
 obs_list = []
 o, _ = env.reset(seed=123)
-for t in range(3):
+for _ in range(3):
     obs_list.append(o)
     o, *_ = env.step(model.predict(o, deterministic=True)[0])
 obs = {k: np.stack([x[k] for x in obs_list]) for k in obs_list[0]}
