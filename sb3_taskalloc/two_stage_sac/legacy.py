@@ -70,7 +70,7 @@ _DECODER_KEYS = (
 )
 
 
-def check_policy_kwargs(policy_class: type, policy_kwargs: dict[str, Any]) -> None:
+def check_policy_kwargs(policy_class: type[Any], policy_kwargs: dict[str, Any]) -> None:
     """A clear error for a ``policy_kwargs`` key that ``policy_class`` does not take, naming where a moved or removed
     option went."""
     import inspect
@@ -144,7 +144,7 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
     mixer = {new: policy_kwargs.pop(old) for old, new in MIXER_KEYS.items() if old in policy_kwargs}
     if mixer:
         policy_kwargs["mixer_kwargs"] = {**policy_kwargs.get("mixer_kwargs", {}), **mixer}
-    custom = {"policy_kwargs": policy_kwargs} if policy_kwargs != (data.get("policy_kwargs") or {}) else {}
+    custom: dict[str, Any] = {"policy_kwargs": policy_kwargs} if policy_kwargs != (data.get("policy_kwargs") or {}) else {}
     attributes: dict[str, Any] = {}
     if "select_kwargs" not in data and any(k in data for k in SELECT_KEYS):
         attributes["select_kwargs"] = {new: data[old] for old, new in SELECT_KEYS.items() if old in data}
