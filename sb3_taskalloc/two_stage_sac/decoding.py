@@ -23,7 +23,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.search import cover_search, exact_covers, sampled_search, select_search
-from sb3_taskalloc.two_stage_sac.select_stage import decode_round
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round, env_action_of
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
@@ -102,6 +102,24 @@ class SampledDecoder(Decoder):
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         st = decode_round(policy.selector.head, view, task_of, False)
+        return st.rank, st.kept()
+
+
+@register_decoder
+class UniformDecoder(Decoder):
+    """Uniformly random valid choices at both stages: the warm-up's exploration (``warmup_exploration="uniform"``)."""
+
+    name = "uniform"
+    deterministic = False
+
+    def preassign(
+        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        uniform = MaskedCategorical(th.zeros_like(view.pair_cost), view.valid)
+        return th.where(view.assignable, uniform.get_actions(False), -1), None
+
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        st = decode_round(policy.selector.head, view, task_of, deterministic=False, uniform=True)
         return st.rank, st.kept()
 
 
@@ -213,3 +231,67 @@ def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:
         return DECODERS[name](**config)
     except TypeError as error:
         raise ValueError(f"decoding strategy {name!r}: {error}") from None
+
+
+#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up.
+SAMPLED, UNIFORM = get_decoding_strategy("sampled"), get_decoding_strategy("uniform")
+
+
+def decide_preassigned(
+    policy: TAMPolicy, view: ObsView, decoder: Decoder, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None
+) -> Decision:
+    """Stage 1 (Algorithm 2): every free entity takes one open task (candidate sets C_j); stage 2 (Algorithm 3):
+    every task decodes its team from its own candidates, all in one round, both as ``decoder`` decides. With
+    ``rounds`` > 1 the entities left over pre-assign again among the tasks not tried yet (see ``rounds``); the
+    decision records the first round."""
+    assert policy.actor is not None
+    B, N, M = view.pair_cost.shape
+    tasks = th.arange(M, device=view.pair_cost.device).view(1, M, 1)
+    first: Decision | None = None
+    env_action = th.full((B, N), M, dtype=th.long, device=view.pair_cost.device)
+    for r in range(policy.rounds):
+        dist = None if decoder is UNIFORM else policy.actor(view)  # the uniform warm-up needs no actor pass
+        c, also_tried = decoder.preassign(policy, view, dist, first_round=r == 0)  # type: ignore[arg-type]
+        if rounds_out is not None:
+            rounds_out.append((view, c))
+        rank, kept = decoder.teams(policy, view, c)
+        candidates = c.unsqueeze(1) == tasks
+        action = env_action_of(rank, kept)
+        if first is None:
+            first = Decision(action, candidates, rank, kept)
+        env_action = th.where(action < M, action, env_action)
+        if r + 1 == policy.rounds:  # no round follows: skip the next view and its device sync
+            break
+        tried = candidates.any(-1) if also_tried is None else candidates.any(-1) | also_tried
+        view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
+        if not bool(view.assignable.any()):
+            break
+    assert first is not None
+    return first._replace(env_action=env_action)
+
+
+def decide_pooled(policy: TAMPolicy, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
+    """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the
+    published code lost them)."""
+    B, N, M = view.pair_cost.shape
+    device = view.pair_cost.device
+    if policy.task_order == "random":
+        order = th.argsort(th.rand(B, M, device=device), dim=1)
+    else:
+        order = th.arange(M, device=device).expand(B, M)
+    pool = view.entity_mask.clone()
+    candidates = th.zeros(B, M, N, dtype=th.bool, device=device)
+    rank = th.full((B, M, N), -1, dtype=th.long, device=device)
+    kept = th.zeros(B, M, dtype=th.bool, device=device)
+    rows = th.arange(B, device=device)
+    for r in range(M):
+        j = order[:, r]
+        open_j = view.task_mask[rows, j]
+        task_of = th.where(pool & open_j.unsqueeze(-1), j.unsqueeze(-1), -1)
+        candidates[rows, j] = task_of >= 0
+        st = decode_round(policy.selector.head, view, task_of, deterministic, uniform)
+        kept_r = st.kept()
+        rank = th.where(st.rank >= 0, st.rank, rank)
+        kept = kept | kept_r
+        pool = pool & ~((st.rank >= 0) & kept_r.unsqueeze(-1)).any(1)
+    return Decision(env_action_of(rank, kept), candidates, rank, kept)

@@ -15,9 +15,9 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, TeamValue
 from sb3_taskalloc.common.policies import AMIXCritic, GlobalCritic, PreAssignActor, SelectCritic, Selector, TwinCritic
+from sb3_taskalloc.common.spaces import OBS_KEYS, check_spaces
 from sb3_taskalloc.common.torch_layers import (
     PAIR_FEATURE_NAMES,
     UNIT_COST,
@@ -28,8 +28,15 @@ from sb3_taskalloc.common.torch_layers import (
     parse_obs,
 )
 from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite
-from sb3_taskalloc.two_stage_sac.decoding import Decoder, get_decoding_strategy
-from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round, env_action_of
+from sb3_taskalloc.two_stage_sac.decoding import (
+    SAMPLED,
+    UNIFORM,
+    Decoder,
+    decide_pooled,
+    decide_preassigned,
+    get_decoding_strategy,
+)
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
 #: the pre-assign actor's weight on the symlog pair cost (each entity leans to its cheapest task), the pointer's weight
@@ -42,21 +49,6 @@ RULE_LOGIT_SCALES = (100.0, 10.0)
 
 #: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
 MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
-
-#: Training's decisions: samples at both stages.
-_SAMPLED = get_decoding_strategy("sampled")
-
-#: Keys of the observation that TAMPolicy reads (the ``TaskAlloc`` observation layout).
-OBS_KEYS = (
-    "entity_features",
-    "task_features",
-    "entity_supply",
-    "task_demand",
-    "task_reward",
-    "pair_cost",
-    "entity_mask",
-    "task_mask",
-)
 
 
 def starts_at_rule(policy_kwargs: dict[str, Any]) -> bool:
@@ -422,77 +414,12 @@ class TAMPolicy(BasePolicy):
             to it: the states the select stage decoded, which the first-round decision alone does not record
         """
         if self.preassign:
-            decoder = self.decoder if deterministic and not uniform else _SAMPLED
-            return self._decide_preassigned(view, decoder, uniform, rounds_out)
+            decoder = UNIFORM if uniform else self.decoder if deterministic else SAMPLED
+            return decide_preassigned(self, view, decoder, rounds_out)
         if rounds_out is not None:
             raise ValueError("rounds_out needs a pre-assigning policy: without pre-assignment the tasks share one pool")
         # Without pre-assignment the tasks share one pool, so the decoders' searches do not apply: argmax or samples.
-        return self._decide_pooled(view, deterministic and self.decoder.deterministic, uniform)
-
-    def _decide_preassigned(
-        self, view: ObsView, decoder: Decoder, uniform: bool, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None
-    ) -> Decision:
-        """Stage 1 (Algorithm 2): every free entity takes one open task (candidate sets C_j); stage 2 (Algorithm 3):
-        every task decodes its team from its own candidates, all in one round, both as ``decoder`` decides. With
-        ``rounds`` > 1 the entities left over pre-assign again among the tasks not tried yet (see ``rounds``); the
-        decision records the first round."""
-        assert self.actor is not None
-        B, N, M = view.pair_cost.shape
-        tasks = th.arange(M, device=view.pair_cost.device).view(1, M, 1)
-        first: Decision | None = None
-        env_action = th.full((B, N), M, dtype=th.long, device=view.pair_cost.device)
-        for r in range(self.rounds):
-            if uniform:
-                dist = MaskedCategorical(th.zeros(B, N, M, device=view.pair_cost.device), view.valid)
-                c, also_tried = th.where(view.assignable, dist.get_actions(False), -1), None
-            else:
-                c, also_tried = decoder.preassign(self, view, self.actor(view), first_round=r == 0)
-            if rounds_out is not None:
-                rounds_out.append((view, c))
-            if uniform:
-                st = decode_round(None, view, c, deterministic=False, uniform=True)
-                rank, kept = st.rank, st.kept()
-            else:
-                rank, kept = decoder.teams(self, view, c)
-            candidates = c.unsqueeze(1) == tasks
-            action = env_action_of(rank, kept)
-            if first is None:
-                first = Decision(action, candidates, rank, kept)
-            env_action = th.where(action < M, action, env_action)
-            if r + 1 == self.rounds:  # no round follows: skip the next view and its device sync
-                break
-            tried = candidates.any(-1) if also_tried is None else candidates.any(-1) | also_tried
-            view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
-            if not bool(view.assignable.any()):
-                break
-        assert first is not None
-        return first._replace(env_action=env_action)
-
-    def _decide_pooled(self, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
-        """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the
-        published code lost them)."""
-        B, N, M = view.pair_cost.shape
-        device = view.pair_cost.device
-        if self.task_order == "random":
-            order = th.argsort(th.rand(B, M, device=device), dim=1)
-        else:
-            order = th.arange(M, device=device).expand(B, M)
-        pool = view.entity_mask.clone()
-        candidates = th.zeros(B, M, N, dtype=th.bool, device=device)
-        rank = th.full((B, M, N), -1, dtype=th.long, device=device)
-        kept = th.zeros(B, M, dtype=th.bool, device=device)
-        rows = th.arange(B, device=device)
-        for r in range(M):
-            j = order[:, r]
-            open_j = view.task_mask[rows, j]
-            task_of = th.where(pool & open_j.unsqueeze(-1), j.unsqueeze(-1), -1)
-            candidates[rows, j] = task_of >= 0
-            st = self.select_round(view, task_of, deterministic, uniform)
-            kept_r = st.kept()
-            rank = th.where(st.rank >= 0, st.rank, rank)
-            kept = kept | kept_r
-            pool = pool & ~((st.rank >= 0) & kept_r.unsqueeze(-1)).any(1)
-        return Decision(env_action_of(rank, kept), candidates, rank, kept)
+        return decide_pooled(self, view, deterministic and self.decoder.deterministic, uniform)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         with th.inference_mode():  # cheaper than SB3's no_grad for the sequential decoding
@@ -544,24 +471,6 @@ def _scale_last_layer(net: nn.Sequential, gain: float) -> None:
     assert isinstance(last, nn.Linear)
     last.weight.mul_(gain)
     last.bias.mul_(gain)
-
-
-def check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
-    """Raise a clear error unless the spaces follow the ``TaskAlloc`` observation and action layout."""
-    if not isinstance(observation_space, spaces.Dict) or not set(OBS_KEYS) <= set(observation_space.spaces):
-        raise ValueError(
-            f"TAMPolicy needs a TaskAlloc Dict observation space with keys {sorted(OBS_KEYS)}, got {observation_space}"
-        )
-    N = observation_space["entity_mask"].shape[0]  # type: ignore[index]
-    M = observation_space["task_mask"].shape[0]  # type: ignore[index]
-    if (
-        not isinstance(action_space, spaces.MultiDiscrete)
-        or action_space.shape != (N,)
-        or not (action_space.nvec == M + 1).all()
-    ):
-        raise ValueError(
-            f"TAMPolicy needs MultiDiscrete([{M + 1}] * {N}) actions (M + 1 choices per entity), got {action_space}"
-        )
 
 
 #: TAMPolicy's defaults of the keywords that decide whether its pre-assign actor starts at a rule (:func:`starts_at_rule`).
