@@ -15,8 +15,11 @@ Adding a strategy is one class here, registered by name with :func:`register_dec
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
+import numpy as np
 import torch as th
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
@@ -217,6 +220,43 @@ class ExactTopDecoder(ExactCoversDecoder):
         argmax = th.where(view.assignable, order[..., 0], -1)
         tasks = th.arange(M, device=argmax.device).view(1, M, 1)
         return covers, (argmax.unsqueeze(1) == tasks).any(-1)
+
+
+class DecodingMixin:
+    """For an SB3 algorithm whose policy has a :attr:`decoder`: choose it by name, for every later deterministic
+    decision or for one block or call."""
+
+    policy: Any
+
+    def set_decoder(self, decoder: str | Decoder, **config: Any) -> None:
+        """Decode every later deterministic decision (``predict(deterministic=True)``, ``evaluate_policy``) by the
+        strategy ``decoder`` (:mod:`~sb3_taskalloc.two_stage_sac.decoding`), e.g. ``set_decoder("team_search",
+        samples=32)``. Training's sampled decisions are unaffected, and the strategy is not saved with the model."""
+        self.policy.decoder = get_decoding_strategy(decoder, **config)
+
+    @contextmanager
+    def decoding(self, decoder: str | Decoder, **config: Any) -> Iterator[Decoder]:
+        """:meth:`set_decoder` inside a ``with`` block only."""
+        previous = self.policy.decoder
+        self.set_decoder(decoder, **config)
+        try:
+            yield self.policy.decoder
+        finally:
+            self.policy.decoder = previous
+
+    def predict(  # type: ignore[override]
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+        decoder: str | Decoder | None = None,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """SB3's ``predict``; ``decoder`` (a strategy's name or object) decodes this call's deterministic decision."""
+        if decoder is None:
+            return super().predict(observation, state, episode_start, deterministic)  # type: ignore[misc]
+        with self.decoding(decoder):
+            return super().predict(observation, state, episode_start, deterministic)  # type: ignore[misc]
 
 
 def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:

@@ -165,3 +165,23 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
             stacklevel=3,
         )
     return custom, attributes, decoder
+
+
+def load_arguments(
+    path: str | pathlib.Path, custom_objects: dict[str, Any] | None, kwargs: dict[str, Any]
+) -> tuple[dict[str, Any] | None, dict[str, Any], Decoder | None]:
+    """SB3's ``load`` arguments for the model at ``path``, its old settings converted (:func:`convert`): the
+    ``custom_objects`` and ``**kwargs`` to pass, and the decoding strategy to set after loading (None: the argmax)."""
+    data = saved_data(path)
+    if data is None:
+        return custom_objects, kwargs, None
+    converted, attributes, decoder = convert(data)
+    return {**converted, **(custom_objects or {})}, {**attributes, **kwargs}, decoder
+
+
+def finish(model: Any, decoder: Decoder | None) -> None:
+    """After SB3's ``load``: drop the removed settings' attributes and set the old model's decoding strategy."""
+    for key in (*REMOVED_TERMS, *REMOVED_COMPANIONS, *SELECT_KEYS):
+        model.__dict__.pop(key, None)
+    if decoder is not None:
+        model.policy.decoder = decoder

@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import inspect
 import math
-from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -15,19 +14,18 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, TeamValue
-from sb3_taskalloc.common.policies import AMIXCritic, GlobalCritic, PreAssignActor, SelectCritic, Selector, TwinCritic
+from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.spaces import OBS_KEYS, check_spaces
 from sb3_taskalloc.common.torch_layers import (
     PAIR_FEATURE_NAMES,
     UNIT_COST,
-    FlatScorer,
     ObsView,
     PairScorer,
     PointerHead,
     parse_obs,
 )
 from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite
+from sb3_taskalloc.two_stage_sac.components import ENCODERS, MIXERS
 from sb3_taskalloc.two_stage_sac.decoding import (
     SAMPLED,
     UNIFORM,
@@ -81,34 +79,19 @@ class TAMPolicy(BasePolicy):
         ``"random"``; only with ``preassign=False``
     :param encoder: ``"tam"`` (size-agnostic attention module) or ``"mlp"`` (the "W/o TAM" ablation, size-specific)
     :param mixer: ``"amix"`` or ``"global"`` (the "W/o AMIX" ablation: one MLP over the flattened state and c)
-    :param mixer_kwargs: settings of the AMIX critic (:data:`MIXER_DEFAULTS`): ``monotonic``, QMIX-style
-        non-negative mixing weights; ``hyper_bias``, a state-dependent AMIX bias; ``team_value``, the per-task value
-        of the teams an assignment sends (:class:`~sb3_taskalloc.common.mixers.TeamValue`, not in the paper: the
-        critic then sees whether a candidate set covers its task; ``False``: the paper's critic)
-    :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (not in the paper, where κ = 1): the
-        inverse temperature of the pre-assignment. Pair costs of one entity differ by a few percent between tasks, so
-        with κ = 1 the cost-greedy rule samples nearly uniform tasks; a larger κ keeps the sampled behaviour near the
-        deployed argmax, and since gradient steps move the scores, learning changes the logits κ times faster.
-        ``None``: 100 where the actor starts at the rule (``heuristic_init`` with the TAM pair read-out, implementation
-        detail 10), else 1 (a random start is no rule to stay near)
-    :param select_logit_scale: κ_s, the same for the pointer actor's logits; ``None``: 10 with ``heuristic_init``,
-        else 1 (the paper's)
-    :param rounds: pre-assign rounds per decision (not in the paper, where there is one): after each round, the
-        entities the pointer did not pick pre-assign again among the open tasks that no round has tried yet, so a task
-        whose candidates fell short no longer holds every entity that chose it. The stored decision, which the losses
-        learn from, is the first round; the env action carries the teams of every round. Like ``rule_weights``, an
-        env's setting of its zoo config: without pre-assignment (``preassign=False``), where tasks already pick in turn
-        from one pool, it does not apply and is ignored
+    :param mixer_kwargs: settings of the AMIX critic over :data:`MIXER_DEFAULTS`: ``monotonic`` (QMIX-style weights),
+        ``hyper_bias`` (a state-dependent bias), ``team_value`` (implementation detail 1; ``False``: the paper's critic)
+    :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (its inverse temperature; the paper's
+        κ = 1; implementation detail 10); ``None``: 100 where the actor starts at the rule, else 1
+    :param select_logit_scale: κ_s, the same for the pointer actor; ``None``: 10 with ``heuristic_init``, else 1
+    :param rounds: pre-assign rounds per decision (implementation detail 15; the paper's 1): the entities the pointer
+        did not pick pre-assign again among the open tasks not tried yet; ignored without pre-assignment
     :param n_critics: number of critics (clipped double-Q)
-    :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`):
-        their linear read-outs weigh only the pair cost and the unit cost, and the dot-product terms start near 0;
-        learning then corrects the rules. ``False``: PyTorch's default initialisation (the paper)
+    :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`,
+        implementation detail 10); ``False``: PyTorch's default initialisation (the paper)
     :param rule_weights: with ``heuristic_init``, the pre-assign rule's weights on the fixed pair features by name
-        (:data:`~sb3_taskalloc.common.torch_layers.PAIR_FEATURE_NAMES`), over the default ``{"pair_cost": -3.0}``
-        (the rest 0). An env's rule is data of its zoo config: where a task's margin matters more than the distance
-        to it, e.g. ``{"margin": 3.0}`` lets entities gather at the tasks worth their cost. Policies without the
-        pre-assign pair read-out (``preassign=False``, ``encoder="mlp"``, ``pair_features=False``) have no such rule
-        and ignore them, as they ignore ``HEURISTIC_INIT["pair_cost"]``
+        (:data:`~sb3_taskalloc.common.torch_layers.PAIR_FEATURE_NAMES`) over ``{"pair_cost": -3.0}``, e.g.
+        ``{"margin": 3.0}`` (MT's zoo config); ignored by policies without the pre-assign pair read-out
     :param activation_fn: activation of the MLPs (paper: ReLU)
     :param optimizer_class: optimizer of every network
     :param optimizer_kwargs: extra optimizer arguments
@@ -427,35 +410,6 @@ class TAMPolicy(BasePolicy):
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)
-
-
-def _tam_scorer(policy: TAMPolicy, scale: float) -> nn.Module:
-    _, _, Fe, Ft, _ = policy.dims
-    return PairScorer(Fe, Ft, policy.hidden_dim, scale, policy.pair_features, policy.n_attention_layers, policy.activation_fn)
-
-
-def _flat_scorer(policy: TAMPolicy, scale: float) -> nn.Module:
-    N, M, Fe, Ft, _ = policy.dims
-    return FlatScorer(N, M, Fe, Ft, policy.hidden_dim, policy.activation_fn)
-
-
-def _amix_critic(policy: TAMPolicy) -> AMIXCritic:
-    _, _, Fe, Ft, K = policy.dims
-    settings = policy.mixer_kwargs
-    mixer = AMIXMixer(Fe, Ft, policy.hidden_dim, settings["monotonic"], settings["hyper_bias"], policy.activation_fn)
-    team = TeamValue(Ft, K, policy.hidden_dim, policy.activation_fn) if settings["team_value"] else None
-    return AMIXCritic(policy._scorer(scale=1.0), mixer, team)  # critics unscaled: Q-values need no temperature
-
-
-def _global_critic(policy: TAMPolicy) -> GlobalCritic:
-    N, M, Fe, Ft, _ = policy.dims
-    return GlobalCritic(GlobalMixer(N, M, Fe, Ft, policy.hidden_dim, policy.activation_fn))
-
-
-#: ``encoder`` name -> the scorer of the actor and of each per-entity critic (built with the actor's or critic's scale).
-ENCODERS: dict[str, Callable[[TAMPolicy, float], nn.Module]] = {"tam": _tam_scorer, "mlp": _flat_scorer}
-#: ``mixer`` name -> one stage-1 critic.
-MIXERS: dict[str, Callable[[TAMPolicy], AMIXCritic | GlobalCritic]] = {"amix": _amix_critic, "global": _global_critic}
 
 
 def _frozen_copy(module: nn.Module) -> Any:

@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import io
-import math
 import pathlib
 import warnings
 from collections import defaultdict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
@@ -26,27 +24,19 @@ from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
 from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite
 from sb3_taskalloc.two_stage_sac import dagger, legacy
-from sb3_taskalloc.two_stage_sac.decoding import Decoder, get_decoding_strategy
+from sb3_taskalloc.two_stage_sac.decoding import DecodingMixin
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
-from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate, SelectUpdate
+from sb3_taskalloc.two_stage_sac.updates import (
+    PreAssignUpdate,
+    SelectUpdate,
+    check_select_kwargs,
+    entropy_coefficient,
+)
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 
 #: Budget of ``learn()`` called without ``total_timesteps`` (env steps).
 DEFAULT_TOTAL_TIMESTEPS = 20_000
-
-#: The select stage's settings (``select_kwargs``) and their defaults: its entropy coefficient α_s (as ``ent_coef``),
-#: the weight β_s of its prior term (implementation detail 12), the rows of each minibatch it trains on (each holds up
-#: to M × team-size transitions, so a few rows suffice), and the team-search distillation term (detail 18): its weight
-#: λ_p (0: off), the decodes per task including the deterministic one, and their temperature.
-SELECT_DEFAULTS: dict[str, Any] = {
-    "ent_coef": "auto",
-    "prior_coef": 3.0,
-    "batch_size": 16,
-    "search_coef": 0.0,
-    "search_samples": 16,
-    "search_temperature": 1.0,
-}
 
 #: Keywords of the paper's configuration, ``TwoStageSAC("TAMPolicy", env, **PAPER_KWARGS)``: γ 0.98 and τ 0.005, the
 #: joint entropy bonus with the entropy target of the earlier defaults, the env reward as paid on completion, a uniform
@@ -67,28 +57,13 @@ PAPER_KWARGS: dict[str, Any] = {
 }
 
 
-def check_select_kwargs(select_kwargs: dict[str, Any] | None) -> dict[str, Any]:
-    """The select stage's settings over :data:`SELECT_DEFAULTS`, with a clear error for an unknown or bad one."""
-    if not isinstance(select_kwargs, dict | None):
-        raise ValueError(f"select_kwargs must be a mapping of {sorted(SELECT_DEFAULTS)}, got {select_kwargs!r}")
-    unknown = sorted(set(select_kwargs or {}) - set(SELECT_DEFAULTS))
-    if unknown:
-        raise ValueError(f"select_kwargs: unknown settings {unknown}; choose from {sorted(SELECT_DEFAULTS)}")
-    settings = {**SELECT_DEFAULTS, **(select_kwargs or {})}
-    check_counts({f"select_kwargs[{k!r}]": settings[k] for k in ("batch_size", "search_samples")})
-    check_finite({f"select_kwargs[{k!r}]": settings[k] for k in ("prior_coef", "search_coef")}, inclusive=True)
-    check_finite({"select_kwargs['search_temperature']": settings["search_temperature"]})
-    return settings
-
-
-class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
+class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     """Two-stage discrete soft actor-critic (paper: "A Two-stage Reinforcement Learning-based Approach for
     Multi-entity Task Allocation"), for the ``TaskAlloc`` environments.
 
-    One decision = two stages (paper Algorithm 1): each free entity samples a task from the TAM actor
-    π_i(j|s) = softmax_j(h_i·g_j/√d) (pre-assignment, candidate sets C_j); then, for every open task in parallel,
-    a pointer head picks candidates one by one until the task's demand is covered; a task whose internal profit
-    (reward if covered − Σ pair costs) is ≤ 0 is abandoned.
+    One decision = two stages (paper Algorithm 1): each free entity takes a task from the TAM actor
+    π_i(j|s) = softmax_j(h_i·g_j/√d) (candidate sets C_j); then every open task's pointer picks candidates until its
+    demand is covered; a task whose profit (reward if covered − Σ pair costs) is ≤ 0 is abandoned.
 
     Every equation, and every deviation from the paper and from the published code, is an implementation detail of
     the package (``docs/implementation.md``); the comments cite them by number. :data:`PAPER_KWARGS` restores the
@@ -106,19 +81,16 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
     :param gradient_steps: gradient steps per rollout (-1: as many as env steps collected)
     :param replay_buffer_class: replay buffer class (default :class:`TwoStageReplayBuffer`)
     :param replay_buffer_kwargs: extra replay buffer arguments
-    :param n_steps: n-step returns for the stage-1 critics' target (implementation detail 2; SB3's ``n_steps`` of SAC)
+    :param n_steps: n-step returns for the stage-1 critics' target (implementation detail 2)
     :param ent_coef: stage-1 entropy coefficient α: ``"auto"``, ``"auto_0.1"`` (auto with initial value) or a float
     :param target_entropy_ratio: H̄* as a fraction of the maximum per-entity (or per-pick) entropy
-    :param reward_timing: the reward the stage-1 critics learn from: ``"completion"``, the env reward (the paper's), or
-        ``"commitment"``, the same profit credited in the step its team is committed (implementation detail 2)
+    :param reward_timing: the stage-1 reward: ``"completion"`` (the env's, the paper's) or ``"commitment"`` (detail 2)
     :param entropy_bonus: the stage-1 entropy term: ``"sum"`` over the free entities (the paper's) or their ``"mean"``
-    :param warmup_exploration: how the warm-up decides: ``"uniform"`` random valid choices (SB3's random warm-up), or
-        ``"policy"``, the stochastic policy itself (implementation detail 8)
+    :param warmup_exploration: the warm-up's decisions: ``"uniform"`` (SB3's random warm-up) or ``"policy"`` (detail 8)
     :param train_preassign_actor: whether the pre-assign actor and its temperature learn; ``False`` holds them at their
         initial rule while the critics and the select stage learn (implementation detail 23)
-    :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ = the actor at initialisation
-        (implementation detail 12)
-    :param select_kwargs: the select stage's settings, over :data:`SELECT_DEFAULTS`
+    :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ its initial rule (detail 12)
+    :param select_kwargs: the select stage's settings over :data:`~sb3_taskalloc.two_stage_sac.updates.SELECT_DEFAULTS`
     :param target_update_interval: target network update interval (gradient steps)
     :param stats_window_size: episodes in the rollout logging window
     :param tensorboard_log: tensorboard log folder
@@ -249,34 +221,17 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
                 "starts at random ones (heuristic_init=False, encoder='mlp' or pair_features=False): it would never learn "
                 "to pre-assign; set train_preassign_actor=True"
             )
-        self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = self._entropy_coefficient(self.ent_coef, "ent_coef")
-        self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = self._entropy_coefficient(
-            self.select_kwargs["ent_coef"], "select_kwargs['ent_coef']"
+        lr = self.lr_schedule(1)
+        self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = entropy_coefficient(
+            self.ent_coef, "ent_coef", self.device, lr
+        )
+        self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = entropy_coefficient(
+            self.select_kwargs["ent_coef"], "select_kwargs['ent_coef']", self.device, lr
         )
         # One update per trained stage: none for the pre-assignment of a policy without it ("W/o Pre").
         self.updates: list[PreAssignUpdate | SelectUpdate] = [SelectUpdate(self)]
         if self.actor is not None:
             self.updates.insert(0, PreAssignUpdate(self, learn_actor=self.train_preassign_actor))
-
-    def _entropy_coefficient(
-        self, spec: str | float, name: str
-    ) -> tuple[th.Tensor | None, th.optim.Optimizer | None, th.Tensor | None]:
-        """(log α parameter, its optimizer, None) for ``"auto[_init]"``, or (None, None, α) for a float ≥ 0."""
-        if isinstance(spec, str):
-            head, _, init_text = spec.partition("_")
-            try:
-                init = float(init_text) if init_text else 0.1
-            except ValueError:
-                init = math.nan
-            if head != "auto" or not math.isfinite(init):
-                raise ValueError(f"{name} must be 'auto', 'auto_<initial value>' or a float, got {spec!r}")
-            if init <= 0:
-                raise ValueError(f"the initial value of {name} must be > 0, got {init}")
-            log_alpha = th.log(th.ones(1, device=self.device) * init).requires_grad_(True)
-            return log_alpha, th.optim.Adam([log_alpha], lr=self.lr_schedule(1)), None
-        if not (isinstance(spec, int | float) and math.isfinite(spec) and spec >= 0):
-            raise ValueError(f"{name} must be 'auto', 'auto_<initial value>' or a float >= 0, got {spec!r}")
-        return None, None, th.tensor(float(spec), device=self.device)
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -329,36 +284,6 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         """SB3's storage, with the commitment reward in place of the env reward when ``reward_timing="commitment"``
         (the episode statistics keep the env reward)."""
         super()._store_transition(replay_buffer, buffer_action, new_obs, self._learned_rewards(reward, infos), dones, infos)
-
-    def set_decoder(self, decoder: str | Decoder, **config: Any) -> None:
-        """Decode every later deterministic decision (``predict(deterministic=True)``, ``evaluate_policy``) by the
-        strategy ``decoder`` (:mod:`~sb3_taskalloc.two_stage_sac.decoding`), e.g. ``set_decoder("team_search",
-        samples=32)``. Training's sampled decisions are unaffected, and the strategy is not saved with the model."""
-        self.policy.decoder = get_decoding_strategy(decoder, **config)
-
-    @contextmanager
-    def decoding(self, decoder: str | Decoder, **config: Any) -> Iterator[Decoder]:
-        """:meth:`set_decoder` inside a ``with`` block only."""
-        previous = self.policy.decoder
-        self.set_decoder(decoder, **config)
-        try:
-            yield self.policy.decoder
-        finally:
-            self.policy.decoder = previous
-
-    def predict(  # type: ignore[override]
-        self,
-        observation: np.ndarray | dict[str, np.ndarray],
-        state: tuple[np.ndarray, ...] | None = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = False,
-        decoder: str | Decoder | None = None,
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
-        """SB3's ``predict``; ``decoder`` (a strategy's name or object) decodes this call's deterministic decision."""
-        if decoder is None:
-            return super().predict(observation, state, episode_start, deterministic)
-        with self.decoding(decoder):
-            return super().predict(observation, state, episode_start, deterministic)
 
     # ------------------------------------------------------------------ training
 
@@ -476,18 +401,11 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
         decoder = None
         if isinstance(path, str | pathlib.Path):
             check_saved_model(path, ("data", "policy.pth"))
-            data = legacy.saved_data(path)
-            if data is not None:
-                converted, attributes, decoder = legacy.convert(data)
-                custom_objects = {**converted, **(custom_objects or {})}
-                kwargs = {**attributes, **kwargs}
+            custom_objects, kwargs, decoder = legacy.load_arguments(path, custom_objects, kwargs)
         model = super().load(
             path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
         )
-        for key in (*legacy.REMOVED_TERMS, *legacy.REMOVED_COMPANIONS, *legacy.SELECT_KEYS):
-            model.__dict__.pop(key, None)
-        if decoder is not None:
-            model.policy.decoder = decoder
+        legacy.finish(model, decoder)
         if env is not None:
             env = model._wrap_env(env, model.verbose)  # type: ignore[arg-type]
             model.n_envs = env.num_envs  # another env count is fine on load, as in SB3's ``load`` (not in ``set_env``)
@@ -509,16 +427,8 @@ class TwoStageSAC(AtomicSaveMixin, OffPolicyAlgorithm):
             )
 
     def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "actor",
-            "critic",
-            "critic_target",
-            "selector",
-            "select_critic",
-            "select_critic_target",
-            "updates",
-        ]
+        aliases = ["actor", "critic", "critic_target", "selector", "select_critic", "select_critic_target"]
+        return [*super()._excluded_save_params(), *aliases, "updates"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "selector.optimizer", "select_critic.optimizer"]

@@ -8,7 +8,8 @@ Equations and numbers refer to the paper and to the implementation details of :m
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+import math
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch as th
 from torch.nn import functional as F
@@ -17,12 +18,63 @@ import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
 from sb3_taskalloc.common.policies import CriticContext
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.common.utils import foreach_polyak_update
+from sb3_taskalloc.common.utils import check_counts, check_finite, foreach_polyak_update
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 Logs = dict[str, list[float]]
+
+#: The select stage's settings (``select_kwargs``) and their defaults: its entropy coefficient α_s (as ``ent_coef``),
+#: the weight β_s of its prior term (implementation detail 12), the rows of each minibatch it trains on (each holds up
+#: to M × team-size transitions, so a few rows suffice), and the team-search distillation term (detail 18): its weight
+#: λ_p (0: off), the decodes per task including the deterministic one, and their temperature.
+SELECT_DEFAULTS: dict[str, Any] = {
+    "ent_coef": "auto",
+    "prior_coef": 3.0,
+    "batch_size": 16,
+    "search_coef": 0.0,
+    "search_samples": 16,
+    "search_temperature": 1.0,
+}
+
+
+def check_select_kwargs(select_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+    """The select stage's settings over :data:`SELECT_DEFAULTS`, with a clear error for an unknown or bad one."""
+    if not isinstance(select_kwargs, dict | None):
+        raise ValueError(f"select_kwargs must be a mapping of {sorted(SELECT_DEFAULTS)}, got {select_kwargs!r}")
+    unknown = sorted(set(select_kwargs or {}) - set(SELECT_DEFAULTS))
+    if unknown:
+        raise ValueError(f"select_kwargs: unknown settings {unknown}; choose from {sorted(SELECT_DEFAULTS)}")
+    settings = {**SELECT_DEFAULTS, **(select_kwargs or {})}
+    check_counts({f"select_kwargs[{k!r}]": settings[k] for k in ("batch_size", "search_samples")})
+    check_finite({f"select_kwargs[{k!r}]": settings[k] for k in ("prior_coef", "search_coef")}, inclusive=True)
+    check_finite({"select_kwargs['search_temperature']": settings["search_temperature"]})
+    return settings
+
+
+def entropy_coefficient(
+    spec: str | float, name: str, device: th.device, lr: float
+) -> tuple[th.Tensor | None, th.optim.Optimizer | None, th.Tensor | None]:
+    """(log α parameter, its Adam optimizer at ``lr``, None) for ``"auto[_init]"``, or (None, None, α) for a float ≥ 0.
+
+    :param name: the setting's name, for the error message
+    """
+    if isinstance(spec, str):
+        head, _, init_text = spec.partition("_")
+        try:
+            init = float(init_text) if init_text else 0.1
+        except ValueError:
+            init = math.nan
+        if head != "auto" or not math.isfinite(init):
+            raise ValueError(f"{name} must be 'auto', 'auto_<initial value>' or a float, got {spec!r}")
+        if init <= 0:
+            raise ValueError(f"the initial value of {name} must be > 0, got {init}")
+        log_alpha = th.log(th.ones(1, device=device) * init).requires_grad_(True)
+        return log_alpha, th.optim.Adam([log_alpha], lr=lr), None
+    if not (isinstance(spec, int | float) and math.isfinite(spec) and spec >= 0):
+        raise ValueError(f"{name} must be 'auto', 'auto_<initial value>' or a float >= 0, got {spec!r}")
+    return None, None, th.tensor(float(spec), device=device)
 
 
 def temperature(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tensor:
