@@ -12,15 +12,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from envs.arrival import Arrival, ArrivalState, make_arrival
-from envs.geometry import Travel, distances, pair_costs, travel_step
+from envs.arrival import Arrival, make_arrival
+from envs.dynamics import TaskAllocDynamics
+from envs.geometry import Travel, travel_step
 from envs.layout import ObsLayout
 from envs.rendering import RenderSnapshot, render_ansi, render_rgb
 from envs.tables import EntityTable, TaskTable, clone
 from envs.validation import EPS, check_action, check_bids, check_config
 
 
-class TaskAllocEnv(gym.Env):
+class TaskAllocEnv(TaskAllocDynamics, gym.Env):
     """Dynamic multi-entity task allocation, padded and masked for variable entity and task counts.
 
     A manager repeatedly assigns free entities to open tasks. Each task needs a vector of resources and pays its
@@ -73,7 +74,32 @@ class TaskAllocEnv(gym.Env):
 
     ## Arguments
 
-    See :meth:`__init__`; every table, count, arrival and decay setting is a keyword argument.
+    :param entities: entity table (cost, supply, start positions, wire costs)
+    :param tasks: table of tasks that can arrive (reward, demands; positions/towers for the reference schedule)
+    :param max_entities: padded entity count N (>= number of entities; default: exactly the table)
+    :param max_tasks: number of task slots M
+    :param grid_size: side of the square grid (positions lie in ``0..grid_size-1``); None for no world
+    :param travel: how committed entities move: ``"none"`` (work at once), ``"manhattan"`` (4-neighbour, y then x),
+        ``"chebyshev"`` (8-neighbour)
+    :param travel_cost: cost per unit of distance added to an entity's base cost (base + travel × distance)
+    :param busy: whether committed entities stay committed until their task completes (False: EPT's towers)
+    :param consume: whether an entity that completes a task is used up for the rest of the episode (MT's trucks)
+    :param arrival: ``"random"`` (every ``arrival_period`` steps, ``arrival_count`` tasks drawn from the table at
+        random positions, capped by free slots), ``"reference"`` (the table in order, refilling empty slots every
+        period) or ``"static"`` (the whole table at reset, nothing later)
+    :param arrival_period: steps between arrivals
+    :param arrival_count: inclusive range of the number of tasks drawn per random arrival
+    :param reward_scale: multiplier applied to task rewards and demands when a task arrives (EPT's peak factor 2)
+    :param demand_noise: relative noise on open tasks' demands redrawn every step (EPT's changing peak demand)
+    :param decay: factor ρ applied to the reward and the demand of tasks older than ``decay_after`` steps
+    :param decay_after: age θ (steps) after which tasks decay
+    :param decay_while_committed: whether a task keeps decaying once entities are committed to it (False: only
+        tasks that nobody is travelling to or working on decay)
+    :param one_step: the episode ends after the first step (Almighty)
+    :param bidding: the entities' base costs are bids posted with :meth:`set_bids`
+    :param bid_max: upper bound of a bid (default: 3 × the largest base cost)
+    :param strict: raise ``ValueError`` on mask-violating assignments instead of counting them
+    :param render_mode: ``"rgb_array"`` or ``"ansi"``
     """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array", "ansi"], "render_fps": 4}  # noqa: RUF012
@@ -103,34 +129,6 @@ class TaskAllocEnv(gym.Env):
         strict: bool = False,
         render_mode: str | None = None,
     ) -> None:
-        """
-        :param entities: entity table (cost, supply, start positions, wire costs)
-        :param tasks: table of tasks that can arrive (reward, demands; positions/towers for the reference schedule)
-        :param max_entities: padded entity count N (>= number of entities; default: exactly the table)
-        :param max_tasks: number of task slots M
-        :param grid_size: side of the square grid (positions lie in ``0..grid_size-1``); None for no world
-        :param travel: how committed entities move: ``"none"`` (work at once), ``"manhattan"`` (4-neighbour, y then x),
-            ``"chebyshev"`` (8-neighbour)
-        :param travel_cost: cost per unit of distance added to an entity's base cost (base + travel × distance)
-        :param busy: whether committed entities stay committed until their task completes (False: EPT's towers)
-        :param consume: whether an entity that completes a task is used up for the rest of the episode (MT's trucks)
-        :param arrival: ``"random"`` (every ``arrival_period`` steps, ``arrival_count`` tasks drawn from the table at
-            random positions, capped by free slots), ``"reference"`` (the table in order, refilling empty slots every
-            period) or ``"static"`` (the whole table at reset, nothing later)
-        :param arrival_period: steps between arrivals
-        :param arrival_count: inclusive range of the number of tasks drawn per random arrival
-        :param reward_scale: multiplier applied to task rewards and demands when a task arrives (EPT's peak factor 2)
-        :param demand_noise: relative noise on open tasks' demands redrawn every step (EPT's changing peak demand)
-        :param decay: factor ρ applied to the reward and the demand of tasks older than ``decay_after`` steps
-        :param decay_after: age θ (steps) after which tasks decay
-        :param decay_while_committed: whether a task keeps decaying once entities are committed to it (False: only
-            tasks that nobody is travelling to or working on decay)
-        :param one_step: the episode ends after the first step (Almighty)
-        :param bidding: the entities' base costs are bids posted with :meth:`set_bids`
-        :param bid_max: upper bound of a bid (default: 3 × the largest base cost)
-        :param strict: raise ``ValueError`` on mask-violating assignments instead of counting them
-        :param render_mode: ``"rgb_array"`` or ``"ansi"``
-        """
         n = len(entities)
         self.n_entities = n
         self.max_entities = int(max_entities) if max_entities is not None else n
@@ -187,29 +185,6 @@ class TaskAllocEnv(gym.Env):
 
     # ------------------------------------------------------------------ state
 
-    def _init_state(self) -> None:
-        N, M, K = self.max_entities, self.max_tasks, self.K
-        self._t = 0
-        self._pos = self._pos0.copy()
-        self._supply = self._supply0.copy()
-        self._alive = self._present0.copy()  # present and not used up
-        self._assigned = np.full(N, -1, dtype=np.int64)  # task slot an entity is committed to, -1 if free
-        self._charge = np.zeros(N)  # pair cost fixed at commitment
-        self._bid = np.zeros(N)
-        self._occupied = np.zeros(M, dtype=bool)
-        self._reward = np.zeros(M)
-        self._base_demand = np.zeros((M, K))
-        self._demand = np.zeros((M, K))  # current total demand (after decay and noise)
-        self._tpos = np.zeros((M, 2))
-        self._age = np.zeros(M, dtype=np.int64)
-        self._tower = np.full(M, -1, dtype=np.int64)  # EPT: tower that is the task
-        self._credit = np.zeros(M)  # profit credited to a closed task by ``info["commitment_reward"]``, not yet paid
-        self._credited = np.zeros(M, dtype=bool)
-        self._open_ext = np.zeros(M + 1, dtype=bool)
-        self._dist: np.ndarray | None = None
-        self._geom_dirty = True
-        self._state_ready = True
-
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict]:
         super().reset(seed=seed)
         self._init_state()
@@ -239,68 +214,7 @@ class TaskAllocEnv(gym.Env):
             raise RuntimeError("call reset() before observe()")
         return self._obs()
 
-    # ------------------------------------------------------------ arrivals
-
-    def _free_slots(self) -> np.ndarray:
-        return np.flatnonzero(~self._occupied)
-
-    def _arrive(self) -> None:
-        state = ArrivalState(self.np_random, len(self._free_slots()), self._tower[self._occupied], self._alive)
-        rows, cells = self._arrival.draw(state)
-        self._place(rows, cells)
-
-    def _place(self, rows: np.ndarray, cells: np.ndarray | None = None) -> None:
-        """Put table rows ``rows`` into the lowest free slots, at ``cells`` or (None) their table positions."""
-        rows = np.asarray(rows, dtype=np.int64)
-        if len(rows) == 0:
-            return
-        slots = self._free_slots()[: len(rows)]
-        rows = rows[: len(slots)]
-        self._geom_dirty = True
-        table = self._task_rows[rows]
-        self._occupied[slots] = True
-        self._reward[slots] = table[:, 0]
-        self._base_demand[slots] = table[:, 1:]
-        self._demand[slots] = table[:, 1:]
-        self._age[slots] = 0
-        if self.tasks.towers is not None:
-            towers = self.tasks.towers[rows]
-            self._tower[slots] = towers
-            self._tpos[slots] = self._pos0[towers]
-        elif self.has_positions:
-            if cells is not None:
-                self._tpos[slots] = cells[: len(slots)]
-            elif self.tasks.positions is not None:
-                self._tpos[slots] = self.tasks.positions[rows]
-
     # ------------------------------------------------------------- queries
-
-    def _refresh(self) -> None:
-        """Recompute the derived quantities (distances, pair costs, remaining demand, masks) after a state change."""
-        committed = self._assigned >= 0
-        onehot = self._eye[self._assigned]  # (N, M); row -1 of the padded identity is zero for free entities
-        rem = np.maximum(self._demand - onehot.T @ self._supply, 0.0)  # empty slots have zero demand
-        free = self._alive & ~committed
-        if self.tasks.towers is not None:
-            free[self._tower[self._occupied]] = False  # a tower at peak demand cannot supply
-        if self._geom_dirty:  # positions, task slots or bids changed since the last refresh
-            base = self._bid if self.bidding else self._cost0
-            if self.has_positions:
-                self._dist = distances(self._pos, self._tpos, self.travel)
-                wire = self._wire if self.tasks.towers is not None else None
-                self._pc = pair_costs(base, self._dist, self.travel_cost, wire, self._tower)
-            else:
-                self._dist = None
-                self._pc = np.repeat(base[:, None], self.max_tasks, axis=1)
-            # Observation pieces that only change with the geometry (padded rows and empty slots are zero).
-            self._pc_obs = (self._pc * (self._present0[:, None] & self._occupied[None, :])).astype(np.float32)
-            self._ef_static = self.layout.entity_features(base * self._alive, self._supply, self._pos, self._bid)
-            self._geom_dirty = False
-        self._rem = rem
-        self._free = free
-        self._open = self._occupied & (rem > EPS).any(1)
-        self._open_ext[: self.max_tasks] = self._open  # indexed by an action: "unassigned" (M) is never a task
-        self._committed = committed
 
     def applied_action(self) -> np.ndarray:
         """(N,) the last action as the env applied it: mask-violating choices replaced by "unassigned" (M)."""
@@ -371,53 +285,11 @@ class TaskAllocEnv(gym.Env):
         # Occupied tasks always have a positive demand, so covering it implies some arrived supply.
         complete = self._occupied & (contrib >= self._demand - EPS).all(1) & contrib.any(1)
 
-        rewards = costs = 0.0
-        n_complete = 0
-        income = np.zeros(self.max_entities)
-        settled = 0.0  # credits of the tasks completed now, already counted by the commitment reward
-        if complete.any():
-            team = committed & complete[self._assigned]
-            income = self._charge * team
-            rewards = float(self._reward @ complete)
-            costs = float(income.sum())
-            n_complete = int(complete.sum())
-            settled = float(self._credit @ complete)
-            self._credit *= ~complete
-            self._credited &= ~complete
-            # Release the teams (used up when `consume`), free the slots, give EPT's task towers back.
-            if self.consume:
-                self._alive &= ~team
-                self._supply[team] = 0.0
-                self._geom_dirty = True
-            self._assigned[team] = -1
-            self._charge[team] = 0.0
-            self._occupied &= ~complete
-            keep = ~complete
-            self._reward *= keep
-            self._demand *= keep[:, None]
-            self._base_demand *= keep[:, None]
-            self._tpos *= keep[:, None]
-            self._geom_dirty = True
-            self._age *= keep
-            self._tower[complete] = -1
+        rewards, costs, n_complete, income, settled = self._complete(complete, committed)
         if not self.busy:  # never busy: assignments last one step
             self._assigned[:] = -1
             self._charge[:] = 0.0
-
-        # Decay (reward and demand × ρ once older than θ; positions untouched) and changing demand.
-        self._age += self._occupied
-        if self.decay < 1.0:
-            decaying = self._age > self.decay_after
-            if not self.decay_while_committed:
-                decaying &= np.bincount(self._assigned[self._assigned >= 0], minlength=M) == 0
-            factor = np.where(decaying, self.decay, 1.0)
-            self._reward *= factor
-            self._base_demand *= factor[:, None]
-        if self.demand_noise > 0:
-            noise = self.np_random.uniform(1 - self.demand_noise, 1 + self.demand_noise, size=(M, 1))
-            np.multiply(self._base_demand, noise, out=self._demand)
-        else:
-            self._demand[:] = self._base_demand
+        self._age_and_decay()
 
         self._t += 1
         if self._arrival.periodic and self._t % self.arrival_period == 0:
@@ -430,47 +302,12 @@ class TaskAllocEnv(gym.Env):
         info = self._info(n_complete, rewards, costs, n_invalid, income, commitment)
         return obs, rewards - costs, bool(terminated), False, info
 
-    def _settle_credits(self, terminated: bool) -> float:
-        """The commitment reward's credits of this step (see the Rewards section): + (current reward − team charges) of
-        each task that is closed (covered by committed entities) and not yet credited, − the credit of a task that
-        reopened, and at termination − every credit still unpaid, so that an episode's commitment rewards sum to its
-        return."""
-        M = self.max_tasks
-        committed = self._assigned >= 0
-        charges = np.bincount(self._assigned[committed], weights=self._charge[committed], minlength=M)
-        new = self._occupied & ~self._open & ~self._credited
-        profit = np.where(new, self._reward - charges, 0.0)
-        refund = self._credited & (self._open | ~self._occupied)
-        self._credit += profit
-        self._credited |= new
-        if terminated:
-            refund |= self._credited
-        total = float(profit.sum() - self._credit @ refund)
-        self._credit *= ~refund
-        self._credited &= ~refund
-        return total
-
     # ------------------------------------------------------------ copying
 
     #: Attributes that never change after construction: deep copies share them.
     _SHARED: ClassVar[frozenset[str]] = frozenset(
-        [
-            "entities",
-            "tasks",
-            "observation_space",
-            "action_space",
-            "layout",
-            "metadata",
-            "spec",
-            "_cost0",
-            "_supply0",
-            "_pos0",
-            "_wire",
-            "_present0",
-            "_eye",
-            "_task_rows",
-            "_entity_index",
-        ]
+        {"entities", "tasks", "observation_space", "action_space", "layout", "metadata", "spec"}
+        | {"_cost0", "_supply0", "_pos0", "_wire", "_present0", "_eye", "_task_rows", "_entity_index"}
     )
 
     def __deepcopy__(self, memo: dict[int, Any]) -> TaskAllocEnv:

@@ -60,11 +60,16 @@ def check_config(entities: EntityTable, tasks: TaskTable, render_modes: Sequence
         raise ValueError(f"arrival_count must be an increasing (low, high) pair, got {s['arrival_count']}")
     if s["render_mode"] is not None and s["render_mode"] not in render_modes:
         raise ValueError(f"render_mode must be one of {list(render_modes)}, got {s['render_mode']!r}")
-    if s["travel"] != "none" and (entities.positions is None or s["grid_size"] is None):
+    check_grid(entities, tasks, s["travel"], s["grid_size"])
+
+
+def check_grid(entities: EntityTable, tasks: TaskTable, travel: str, grid_size: int | None) -> None:
+    """Raise ``ValueError`` unless travel has positions on a grid and every position lies on it."""
+    if travel != "none" and (entities.positions is None or grid_size is None):
         raise ValueError("travel needs entity positions and a grid_size")
     for what, cells in (("entity", entities.positions), ("task", tasks.positions)):
-        if cells is not None and s["grid_size"] is not None and ((cells < 0) | (cells >= s["grid_size"])).any():
-            raise ValueError(f"{what} positions must lie on the grid, in [0, {s['grid_size'] - 1}]")
+        if cells is not None and grid_size is not None and ((cells < 0) | (cells >= grid_size)).any():
+            raise ValueError(f"{what} positions must lie on the grid, in [0, {grid_size - 1}]")
 
 
 def check_action(action: Any, n_entities: int, n_tasks: int) -> np.ndarray:
