@@ -283,7 +283,7 @@ def test_table_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):
 
 def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
     """A ``learn --jobs N`` killed by a signal its workers do not receive leaves no worker training on: each worker
-    (set up by ``_one_thread``) exits once its parent is gone."""
+    (set up by ``one_thread``) exits once its parent is gone."""
     import subprocess
     import sys
     import time
@@ -292,9 +292,9 @@ def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
     script.write_text(
         "import multiprocessing, os, time\n"
         "from concurrent.futures import ProcessPoolExecutor\n"
-        "from sb3_taskalloc.experiments.learn import _one_thread\n"
+        "from sb3_taskalloc.experiments.evaluation import one_thread\n"
         "if __name__ == '__main__':\n"
-        "    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_one_thread,\n"
+        "    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=one_thread,\n"
         "                               initargs=(os.getpid(),))\n"
         "    print(pool.submit(os.getpid).result(), flush=True)\n"
         "    pool.submit(time.sleep, 600)\n"
@@ -321,8 +321,8 @@ def test_learn_workers_exit_when_their_parent_is_gone(tmp_path):
     # A worker whose set-up runs only after the pool's process is gone (killed while the worker still imported torch)
     # is no longer that process's child: it exits at once rather than watching its new parent.
     late = subprocess.Popen(
-        [sys.executable, "-c", "import os, time\nfrom sb3_taskalloc.experiments.learn import _one_thread\n"
-         f"_one_thread({os.getpid() + 10**6})\ntime.sleep(600)\n"], cwd=Path.cwd(), stderr=subprocess.PIPE, text=True
+        [sys.executable, "-c", "import os, time\nfrom sb3_taskalloc.experiments.evaluation import one_thread\n"
+         f"one_thread({os.getpid() + 10**6})\ntime.sleep(600)\n"], cwd=Path.cwd(), stderr=subprocess.PIPE, text=True
     )  # fmt: skip
     try:
         _, errors = late.communicate(timeout=60)
@@ -523,7 +523,7 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path):
     columns gets them from the saved model."""
     import json
 
-    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments import learn, learn_report
 
     kwargs = {"learning_starts": 5, "batch_size": 8, "reward_timing": "commitment", "policy_kwargs": {"hidden_dim": 16}}
     run = learn.LearnRun("EPT", 1, steps=10, eval_episodes=2, eval_every=5, algo_kwargs=kwargs, planners=(), out=tmp_path)
@@ -537,12 +537,12 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path):
     path.write_text(json.dumps({k: v for k, v in record.items() if k not in ("actor_only", "pointer_only")}))
     assert run.run_seed(0)["pointer_only"] == record["pointer_only"] and "actor_only" in json.loads(path.read_text())
     # Without the figures against the expected return: measured by the same seeded diagnosis, the others unchanged.
-    path.write_text(json.dumps({k: v for k, v in record.items() if k not in learn.CRITIC_BRANCHED} | {"q_corr": 99.0}))
+    path.write_text(json.dumps({k: v for k, v in record.items() if k not in learn_report.CRITIC_BRANCHED} | {"q_corr": 99.0}))
     branched = run.run_seed(0)
     assert branched["q_corr_expected"] == pytest.approx(record["q_corr_expected"], nan_ok=True)
     assert branched["q_corr"] == pytest.approx(record["q_corr"])
     # Without the decision-pair figures (a later version): the same, and the table gains their columns.
-    path.write_text(json.dumps({k: v for k, v in record.items() if k not in learn.CRITIC_ADVANTAGE}))
+    path.write_text(json.dumps({k: v for k, v in record.items() if k not in learn_report.CRITIC_ADVANTAGE}))
     paired = run.run_seed(0)
     assert paired["advantage_sign"] == pytest.approx(record["advantage_sign"], nan_ok=True)
     assert paired["q_corr_expected"] == pytest.approx(record["q_corr_expected"], nan_ok=True)
@@ -608,7 +608,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     summary files, and a second run reads the finished seeds back instead of training again."""
     import json
 
-    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments import evaluation, learn
 
     kwargs = {"n_envs": 1, "learning_starts": 5, "batch_size": 8, "policy_kwargs": {"hidden_dim": 16}}  # n_envs: the zoo's 8
     run = learn.LearnRun(
@@ -635,7 +635,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
         assert len(record["actor_only"]) == len(record["pointer_only"]) == 2
         assert [p[0] for p in record["curve"]] == [0, 5, 10]
     assert (tmp_path / "EPT.png").stat().st_size > 0
-    assert learn.eval_seeds(0, 10)[-1] < learn.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
+    assert evaluation.eval_seeds(0, 10)[-1] < evaluation.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
     shifted = run.zero_shot("EPT-TaskShift").read_text()  # the saved models, untrained on another env
     assert "| seed | untrained | trained | Greedy |" in shifted and "trained ≥ Greedy:" in shifted
     searched = run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4})  # the same models, searching
@@ -645,7 +645,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
     assert [r["MILP"] for r in rows] == [r["MILP"] for r in data["seeds"]]  # the seeds' own held-out episodes
     with monkeypatch.context() as patched:  # each seed's row was saved: a second call evaluates nothing again
-        patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("a finished seed was evaluated again"))
+        patched.setattr(evaluation, "episode_returns", lambda *a, **k: pytest.fail("a finished seed was evaluated again"))
         assert run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4}).read_text() == searched.read_text()
     saved = next(tmp_path.glob("EPT/EPT_decoder_preassign_search_samples_4_seed_0_*.json"))
     saved.write_text(json.dumps({**rows[0], "trained": [-1.0, -1.0], "model_digest": "another model"}))
@@ -657,7 +657,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
 
     with monkeypatch.context() as patched:  # code that moves the decisions: the rows are stale
-        patched.setattr(learn, "episode_returns", lambda *a, **k: pytest.fail("evaluated again"))
+        patched.setattr(evaluation, "episode_returns", lambda *a, **k: pytest.fail("evaluated again"))
         run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 4})  # the rows saved above
         decide = TAMPolicy._predict
         patched.setattr(TAMPolicy, "_predict", lambda self, *a, **k: decide(self, *a, **k) + 1)
@@ -667,8 +667,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
 
     model = TwoStageSAC.load(run.seed_path(0).with_suffix(".zip"), device="cpu")
     model.set_decoder("preassign_search", samples=4)
-    assert json.loads(saved.read_text())["decisions"] == learn.decision_digest(model, "TaskAlloc/EPT-v0")
-    assert learn.decision_digest(model, "TaskAlloc/EPT-v0") == learn.decision_digest(model, "TaskAlloc/EPT-v0")
+    assert json.loads(saved.read_text())["decisions"] == evaluation.decision_digest(model, "TaskAlloc/EPT-v0")
+    assert evaluation.decision_digest(model, "TaskAlloc/EPT-v0") == evaluation.decision_digest(model, "TaskAlloc/EPT-v0")
     import sb3_taskalloc.two_stage_sac.decoding as decoding
 
     solved = []  # each task's exact cover of its candidates, solved at decision time
@@ -707,7 +707,7 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
     import json
 
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments import evaluation, learn
 
     kwargs = {"n_envs": 1, "learning_starts": 2, "batch_size": 4, "learning_rate": 0.05, "policy_kwargs": {"hidden_dim": 8}}
     run = learn.LearnRun("EPT", seeds=1, steps=12, eval_episodes=2, eval_every=4, algo_kwargs=kwargs, planners=(),
@@ -719,15 +719,15 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
     assert "| trained | only actor learned | only pointer learned | best on validation | Greedy | MILP |" in text
     assert "best on validation / untrained (means):" in text and "--validation-episodes 2" in text
     (record,) = json.loads((tmp_path / "EPT.json").read_text())["seeds"]
-    validation = learn.validation_seeds(0, 2)
+    validation = evaluation.validation_seeds(0, 2)
     assert set(validation).isdisjoint(record["eval_seeds"]) and set(validation).isdisjoint(range(10_000))
     steps, values = zip(*record["curve"], strict=True)
     assert steps == (0, 4, 8, 12)
     best = int(np.argmax(values[1:])) + 1  # the first best point after step 0
     assert record["best_step"] == steps[best]
     model = TwoStageSAC.load(run.seed_path(0).with_name(run.seed_path(0).stem + "_best.zip"), device="cpu")
-    assert np.mean(learn.episode_returns(model, run.env_id, validation)) == pytest.approx(values[best])
-    assert learn.episode_returns(model, run.env_id, record["eval_seeds"]) == pytest.approx(record["best"])
+    assert np.mean(evaluation.episode_returns(model, run.env_id, validation)) == pytest.approx(values[best])
+    assert evaluation.episode_returns(model, run.env_id, record["eval_seeds"]) == pytest.approx(record["best"])
 
 
 def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_path, monkeypatch):
@@ -735,7 +735,7 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     not trained again), the model before it is evaluated too, and its settings are part of the seed's digest."""
     import json
 
-    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments import evaluation, learn
     from sb3_taskalloc.experiments.__main__ import main
 
     kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
@@ -761,7 +761,7 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     assert 0 < base["curve_seconds"] < base["train_seconds"]
     assert base["curve_seconds"] < record["curve_seconds"] < base["curve_seconds"] + record["dagger_seconds"]
     assert "of which the curve's evaluations" in text
-    assert learn.dagger_seed(0) > max(learn.validation_seeds(4, 100) + learn.eval_seeds(4, 100))
+    assert learn.dagger_seed(0) > max(evaluation.validation_seeds(4, 100) + evaluation.eval_seeds(4, 100))
     # No training steps: DAgger alone, from the initial rule (the command line allows --steps 0 with --select-dagger).
     monkeypatch.undo()
     alone = learn.LearnRun("Almighty", 1, steps=0, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
@@ -782,7 +782,7 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     report's critic means skip a seed that lacks a figure and say over how many seeds they are."""
     import json
 
-    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments import evaluation, learn
     from sb3_taskalloc.experiments.__main__ import main
 
     kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
@@ -794,8 +794,8 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     records = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
     assert [r["seed"] for r in records] == [3, 4] and run.seed_path(3).with_suffix(".zip").exists()
     assert not any(tmp_path.glob("Almighty/seed_0_*"))
-    assert [r["eval_seeds"] for r in records] == [learn.eval_seeds(3, 2), learn.eval_seeds(4, 2)]
-    earlier = [s for seed in range(3) for s in learn.eval_seeds(seed, 100)]
+    assert [r["eval_seeds"] for r in records] == [evaluation.eval_seeds(3, 2), evaluation.eval_seeds(4, 2)]
+    earlier = [s for seed in range(3) for s in evaluation.eval_seeds(seed, 100)]
     assert set(records[0]["eval_seeds"] + records[1]["eval_seeds"]).isdisjoint(earlier)
     assert "--first-seed" not in learn.LearnRun("Almighty", 2).command()
     # A seed whose sampled decisions never differed has no paired-critic figures: the means are over the other seeds.
@@ -823,21 +823,23 @@ def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monke
 
     import numpy as np
 
-    from sb3_taskalloc.experiments import learn
+    from sb3_taskalloc.experiments import evaluation, learn
     from sb3_taskalloc.experiments.__main__ import main
 
     kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
     run = learn.LearnRun("Almighty", 2, steps=3, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(), out=tmp_path)
     run.run(progress=False)
     evaluated: list[tuple[int, ...]] = []
-    returns = learn.episode_returns
+    returns = evaluation.episode_returns
     monkeypatch.setattr(
-        learn, "episode_returns", lambda agent, env_id, seeds: evaluated.append(tuple(seeds)) or returns(agent, env_id, seeds)
+        evaluation,
+        "episode_returns",
+        lambda agent, env_id, seeds: evaluated.append(tuple(seeds)) or returns(agent, env_id, seeds),
     )
     monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("the MILP ran"))
     path = run.reevaluate(more_episodes=3)
     assert path.name == "Almighty_more_episodes_3.md"
-    assert sorted(set(evaluated)) == [tuple(learn.eval_seeds(seed, 5)[2:]) for seed in (0, 1)] and len(evaluated) == 6
+    assert sorted(set(evaluated)) == [tuple(evaluation.eval_seeds(seed, 5)[2:]) for seed in (0, 1)] and len(evaluated) == 6
     text = path.read_text()
     assert "3 further held-out episodes per seed" in text and "--more-episodes 3`" in text and "| MILP" not in text
     rows = json.loads(path.with_suffix(".json").read_text())["seeds"]

@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    from sb3_taskalloc.experiments.learn import PLANNERS, LearnRun
+    from sb3_taskalloc.experiments.evaluation import PLANNERS
+    from sb3_taskalloc.experiments.learn import LearnRun
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")

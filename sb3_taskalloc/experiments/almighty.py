@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from sb3_taskalloc.experiments.learn import Curve
+from sb3_taskalloc.experiments.evaluation import Curve
 from sb3_taskalloc.experiments.plots import plot_almighty
 
 VARIANTS = {

@@ -388,7 +388,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.budgets import over_zoo, training_env
-    from sb3_taskalloc.experiments.learn import Curve, episode_returns, eval_seeds
+    from sb3_taskalloc.experiments.evaluation import Curve, episode_returns, eval_seeds
 
     env_id = "TaskAlloc/RBF-v0"
     budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)

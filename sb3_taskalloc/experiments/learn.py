@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
 import io
 import json
 import os
@@ -37,203 +36,16 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
-from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
+from sb3_taskalloc.experiments import evaluation, learn_report, reevaluate
 from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env, zoo_dagger
+from sb3_taskalloc.experiments.evaluation import PLANNERS, Curve, eval_seeds, one_thread, validation_seeds
+from sb3_taskalloc.experiments.learn_report import CRITIC_ADVANTAGE, CRITIC_BRANCHED, has_branched
 
 # The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
 # validation (30,000 + 100·seed) and diagnosis episodes; SelectDAggerCallback rolls out the same episodes by default.
 from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback, dagger_seed
-
-#: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
-#: the expected return Ḡ, the correlation a perfect critic would reach against G, with the number of free entities, and
-#: its preference between two decisions of a state against their paired branch returns (ΔQ against ΔḠ).
-CRITIC_COLUMNS = {
-    "q_corr": "corr(Q, G)",
-    "q_scale": "scale Q/G",
-    "q_corr_expected": "corr(Q, Ḡ)",
-    "q_scale_expected": "scale Q/Ḡ",
-    "return_ceiling": "ceiling",
-    "free_corr_q": "corr(Q, free)",
-    "free_corr_expected": "corr(Ḡ, free)",
-    "advantage_pairs": "pairs",
-    "advantage_corr": "corr(ΔQ, ΔḠ)",
-    "advantage_ceiling": "ΔḠ ceiling",
-    "advantage_sign": "same sign",
-}
-CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
-CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_corr", "advantage_ceiling", "advantage_sign"]
-
-
-def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
-    """Whether every record holds the critic's figures ``keys`` of the branched rollouts (:data:`CRITIC_BRANCHED`, or
-    :data:`CRITIC_ADVANTAGE`: each set came with a later version of :mod:`.diagnose`)."""
-    return all(k in r for r in records for k in keys)
-
-
-#: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
-PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
-
-
-def seed_mean(records: list[dict[str, Any]], name: str) -> tuple[float, int]:
-    """Mean of figure ``name`` over the seeds where it is defined, and their number: a seed whose sampled decisions
-    never differ has no corr(ΔQ, ΔḠ) (NaN), which must not make the mean NaN nor count as a value."""
-    values = np.array([r[name] for r in records], dtype=float)
-    defined = values[~np.isnan(values)]
-    return (float(defined.mean()) if defined.size else float("nan")), int(defined.size)
-
-
-def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -> str:
-    """:func:`seed_mean` formatted, with the number of seeds it is over when some seeds lack the figure ("—" when none
-    has it)."""
-    mean, defined = seed_mean(records, name)
-    if not defined:
-        return "—"
-    return f"{mean:.{digits}f}" + (f" ({defined} of {len(records)} seeds)" if defined < len(records) else "")
-
-
-#: Held-out reset seeds reserved for each training seed: 10,000 + 100·seed + k for k below this.
-EPISODES_PER_SEED = 100
-
-
-def eval_seeds(seed: int, episodes: int) -> list[int]:
-    """Reset seeds of the held-out evaluation episodes of training seed ``seed`` (disjoint from training seeds)."""
-    return [10_000 + EPISODES_PER_SEED * seed + k for k in range(episodes)]
-
-
-def validation_seeds(seed: int, episodes: int) -> list[int]:
-    """Reset seeds of the validation episodes of training seed ``seed``, which pick the best checkpoint
-    (``LearnRun(validation_episodes)``): disjoint from the training seeds and from every held-out evaluation episode."""
-    return [30_000 + 100 * seed + k for k in range(episodes)]
-
-
-def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable[[gym.Env], Any] | None = None) -> list[float]:
-    """Deterministic return of ``agent`` (anything with SB3's ``predict``) on one episode per reset seed.
-
-    :param planner: builds the agent from the episode's env instead (the planners act in the env they clone)
-    """
-    returns = []
-    for s in seeds:
-        env = gym.make(env_id)
-        obs, _ = env.reset(seed=s)
-        actor = planner(env) if planner is not None else agent
-        total, done = 0.0, False
-        while not done:
-            obs, reward, terminated, truncated, _ = env.step(actor.predict(obs, deterministic=True)[0])
-            total += float(reward)
-            done = terminated or truncated
-        returns.append(total)
-    return returns
-
-
-#: Reset seeds of the states whose decisions fingerprint a policy and its searches (:func:`decision_digest`); no
-#: figure is measured on them.
-FINGERPRINT_SEEDS = (90_000, 90_001)
-
-
-def decision_digest(agent: Any, env_id: str, seeds: Iterable[int] = FINGERPRINT_SEEDS) -> str:
-    """Digest of ``agent``'s deterministic actions in the first state of each episode of ``seeds``, with torch's random
-    state forked at a fixed seed (the sampled searches draw the same, and the caller's draws are untouched)."""
-    import torch as th
-
-    digest = hashlib.sha256()
-    with th.random.fork_rng():
-        th.manual_seed(0)
-        for s in seeds:
-            obs, _ = gym.make(env_id).reset(seed=s)
-            digest.update(np.asarray(agent.predict(obs, deterministic=True)[0], dtype=np.int64).tobytes())
-    return digest.hexdigest()[:16]
-
-
-def _reevaluation_labels(shift: str | None, decoder: str, config: dict[str, Any], more_episodes: int) -> tuple[str, str, str]:
-    """The file-name suffix, the title's words and the command-line flags of a :meth:`LearnRun.reevaluate`, from its
-    parts in one order: the shift, the decoding strategy unless it is the argmax, the further episodes."""
-    parts: list[tuple[str, str]] = []  # (file-name part, flag) of each part that is on
-    if shift:
-        parts.append((f"zero_shot_{shift}", f"zero-shot {shift}"))
-    if decoder != "argmax":
-        settings = "".join(f"_{k}_{v}" for k, v in sorted(config.items()))
-        flag = f"decoder {decoder}" + (f" --decoder-kwargs '{json.dumps(config)}'" if config else "")
-        parts.append((f"decoder_{decoder}{settings}", flag))
-    if more_episodes:
-        parts.append((f"more_episodes_{more_episodes}", f"more-episodes {more_episodes}"))
-    first = "held-out episodes"
-    if shift:
-        first = "zero-shot"
-    elif more_episodes:
-        first = f"{more_episodes} further held-out episodes per seed"
-    words = [first] if decoder == "argmax" else [first, f"decoded by {decoder} {config or ''}".rstrip()]
-    return "".join(f"_{part}" for part, _ in parts), ", ".join(words), "".join(f" --{flag}" for _, flag in parts)
-
-
-def _one_thread(parent: int) -> None:
-    """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered, and a
-    watch that ends the worker when the process that started it is gone (:func:`_exit_with_parent`).
-
-    :param parent: the pid of the process that started the pool (``os.getpid()`` there). A worker reads its own parent
-        only after its interpreter has started and imported torch, seconds later; a parent killed in between would
-        leave it re-parented already, watching the wrong process
-    """
-    import threading
-
-    import torch as th
-
-    import envs  # noqa: F401
-
-    th.set_num_threads(1)
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
-
-
-def _exit_with_parent(parent: int, poll: float = 1.0) -> None:
-    """Exit this process once its parent ``parent`` is gone (it is then re-parented). A ``learn --jobs N`` stopped by a
-    signal its workers do not receive (``kill``, the session ending) would otherwise leave them training unobserved,
-    writing seeds into the results folder while a new run of the same folder starts. Seed records are written
-    atomically, so the seed in progress loses only its unsaved work, as on Ctrl-C; a new run resumes from the finished
-    seeds."""
-    while os.getppid() == parent:
-        time.sleep(poll)
-    os._exit(1)
-
-
-class Curve(BaseCallback):
-    """Deterministic return on ``seeds``' episodes every ``every`` env steps (and at step 0).
-
-    :param keep_best: also keep a copy of the policy's weights at the best evaluation after step 0 (``best``, at
-        ``best_step``), as SB3's ``EvalCallback(best_model_save_path=...)`` keeps the best model
-    """
-
-    def __init__(self, env_id: str, seeds: list[int], every: int, keep_best: bool = False) -> None:
-        super().__init__()
-        self.env_id, self.seeds, self.every, self.keep_best = env_id, seeds, every, keep_best
-        self.points: list[tuple[int, float]] = []
-        self.best: dict[str, Any] | None = None
-        self.best_step = 0
-        #: Wall-clock seconds spent in the evaluations: the experiment's cost, not training's.
-        self.seconds = 0.0
-
-    def _evaluate(self) -> None:
-        self.evaluate_at(self.num_timesteps)
-
-    def evaluate_at(self, step: int) -> None:
-        """Add the point of ``step`` (training that goes on outside ``learn``, e.g. DAgger's rollouts, counts its own)."""
-        t0 = time.perf_counter()
-        value = float(np.mean(episode_returns(self.model, self.env_id, self.seeds)))
-        self.seconds += time.perf_counter() - t0
-        if self.keep_best and step > 0 and value > max((v for t, v in self.points if t > 0), default=-np.inf):
-            self.best = copy.deepcopy(self.model.policy.state_dict())
-            self.best_step = step
-        self.points.append((step, value))
-
-    def _on_training_start(self) -> None:
-        self._evaluate()
-
-    def _on_step(self) -> bool:
-        # With n_envs envs the step count grows by n_envs per call: evaluate on passing each multiple of `every`.
-        if self.num_timesteps // self.every > (self.num_timesteps - self.training_env.num_envs) // self.every:
-            self._evaluate()
-        return True
 
 
 @dataclass
@@ -356,7 +168,7 @@ class LearnRun:
         if self.select_dagger:
             self._dagger(model, seed, record, curve, path)
         record["curve"] = curve.points
-        record["trained"] = episode_returns(model, self.env_id, seeds)
+        record["trained"] = evaluation.episode_returns(model, self.env_id, seeds)
         record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
         record.update(self._diagnose(model, seed))
         record.update(self.baselines(seed))
@@ -376,7 +188,11 @@ class LearnRun:
 
         env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
         model = TwoStageSAC("TAMPolicy", env, seed=seed, device=self.device, **hyperparameters)
-        record: dict[str, Any] = {"seed": seed, "eval_seeds": seeds, "untrained": episode_returns(model, self.env_id, seeds)}
+        record: dict[str, Any] = {
+            "seed": seed,
+            "eval_seeds": seeds,
+            "untrained": evaluation.episode_returns(model, self.env_id, seeds),
+        }
         curve = self._curve(seed)
         t0 = time.perf_counter()
         model.learn(self.steps, callback=curve)
@@ -395,7 +211,7 @@ class LearnRun:
         ``<seed file>_best.zip``; the model keeps its own weights."""
         final = copy.deepcopy(model.policy.state_dict())
         model.policy.load_state_dict(curve.best)
-        record.update(best=episode_returns(model, self.env_id, record["eval_seeds"]), best_step=curve.best_step)
+        record.update(best=evaluation.episode_returns(model, self.env_id, record["eval_seeds"]), best_step=curve.best_step)
         model.save(path.with_name(path.stem + "_best.zip"))
         model.policy.load_state_dict(final)
         curve.best = None  # evaluated: a later best replaces it
@@ -404,7 +220,7 @@ class LearnRun:
         """``select_dagger`` iterations of :meth:`~sb3_taskalloc.TwoStageSAC.distill_select`, the curve measured after
         each at the env steps of its rollouts (after the training steps); a better point on the validation episodes
         replaces the best checkpoint."""
-        record["before_dagger"] = episode_returns(model, self.env_id, record["eval_seeds"])
+        record["before_dagger"] = evaluation.episode_returns(model, self.env_id, record["eval_seeds"])
         steps = [self.steps]
 
         def point(stats: dict[str, float]) -> None:
@@ -501,8 +317,8 @@ class LearnRun:
         path = Path(self.out) / self.env / f"baselines_seed_{seed}_{key}.json"
         done: dict[str, list[float]] = json.loads(path.read_text()) if path.exists() else {}
         agents: dict[str, Callable[[], list[float]]] = {
-            "Greedy": lambda: episode_returns(b.GreedyAllocator(), self.env_id, seeds),
-            "MILP": lambda: episode_returns(b.MILPAllocator(time_limit=self.milp_time_limit), self.env_id, seeds),
+            "Greedy": lambda: evaluation.episode_returns(b.GreedyAllocator(), self.env_id, seeds),
+            "MILP": lambda: evaluation.episode_returns(b.MILPAllocator(time_limit=self.milp_time_limit), self.env_id, seeds),
         }
         for name in self.planners:
             cls = getattr(b, name)
@@ -510,7 +326,7 @@ class LearnRun:
             def planner(env: gym.Env, cls: Any = cls) -> Any:
                 return cls(env, seed=seed, **PLANNER_BUDGET)
 
-            agents[name] = lambda planner=planner: episode_returns(None, self.env_id, seeds, planner)  # type: ignore[misc]
+            agents[name] = lambda planner=planner: evaluation.episode_returns(None, self.env_id, seeds, planner)  # type: ignore[misc]
         for name, run in agents.items():
             if name not in done:
                 done[name] = run()
@@ -535,7 +351,7 @@ class LearnRun:
 
                 context = multiprocessing.get_context("spawn")  # fresh interpreters: no forked torch thread pools
                 pool = stack.enter_context(
-                    ProcessPoolExecutor(jobs, mp_context=context, initializer=_one_thread, initargs=(os.getpid(),))
+                    ProcessPoolExecutor(jobs, mp_context=context, initializer=one_thread, initargs=(os.getpid(),))
                 )
                 results = pool.map(self.run_seed, self.seed_range)
             records = list(tqdm(results, total=self.seeds, desc=f"{self.env} learning", disable=not progress))
@@ -543,148 +359,12 @@ class LearnRun:
 
     def write(self, records: list[dict[str, Any]]) -> Path:
         """``<out>/<env>.json`` (per seed), ``.png`` (curves) and ``.md`` (per seed, mean ± std, targets)."""
-        from sb3_taskalloc.experiments.plots import plot_learning_progress
-
-        selected = ["best"] if all("best" in r for r in records) else []
-        stages = ["actor_only", "pointer_only"] if all("actor_only" in r for r in records) else []
-        dagger = ["before_dagger"] if all("before_dagger" in r for r in records) else []
-        columns = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP", *self.planners]
-        means = {c: [float(np.mean(r[c])) for r in records] for c in columns}
-        best_planner = max(self.planners, key=lambda p: float(np.mean(means[p]))) if self.planners else None
-        stem = Path(self.out) / self.env
-        atomic_write_text(stem.with_suffix(".json"), json.dumps({"settings": self.describe(), "seeds": records}) + "\n")
-        png = plot_learning_progress(
-            {r["seed"]: r["curve"] for r in records},
-            {"Greedy": float(np.mean(means["Greedy"])), "MILP": float(np.mean(means["MILP"]))},
-            stem.with_suffix(".png"),
-            f"{self.env_id}: deterministic return on {'validation' if self.validation_episodes else 'held-out'} episodes "
-            "while training",
-            marks={f"DAgger ({self.select_dagger} iterations) from here": self.steps} if dagger else None,
-        )
-        shown = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP"]
-        shown += [best_planner] if best_planner else []
-        names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned",
-                 "before_dagger": "before DAgger"}  # fmt: skip
-        headers = [names.get(c, c) for c in shown]
-        critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
-        critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
-        critic_headers = [CRITIC_COLUMNS[c] for c in critic]
-        lines = [
-            f"# {self.env_id}: TwoStageSAC trained {self.steps:,} steps, {len(records)} seeds"
-            + (f" ({self.seed_range[0]}–{self.seed_range[-1]})" if self.first_seed else "")
-            + f" × {self.eval_episodes} held-out episodes"
-            + (" (trained on CUDA)" if self.device == "cuda" else ""),
-            "",
-            f"Command: `{self.command()}`. Curve: `{png.name}`.",
-            "",
-            *(
-                [
-                    "Trained: the final model. Best: the checkpoint with the best return on the validation episodes (the "
-                    "curve), evaluated on the held-out ones.",
-                    "",
-                ]
-                if selected
-                else []
-            ),
-            *(
-                [
-                    f"Trained: {self.steps:,} steps of TwoStageSAC, then {self.select_dagger} DAgger iterations teaching "
-                    "the pointer the exact cover of its candidates (`TwoStageSAC.distill_select`); before DAgger: the "
-                    "model after the steps alone.",
-                    "",
-                ]
-                if dagger
-                else []
-            ),
-            *(
-                [
-                    "Only actor / pointer learned: the final model with the other stage back at its initial rule (which "
-                    "stage's learning the trained return owes to).",
-                    "",
-                ]
-                if stages
-                else []
-            ),
-            "| seed | " + " | ".join(headers) + " | " + " | ".join(critic_headers) + " | training s |",
-            "|---" * (len(shown) + len(critic) + 2) + "|",
-        ]
-        for k, r in enumerate(records):
-            cells = " | ".join(f"{means[c][k]:.1f}" for c in shown)
-            figures = " | ".join(f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic)
-            lines.append(f"| {r['seed']} | {cells} | {figures} | {r['train_seconds']:.0f} |")
-        summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
-        critic_means = " | ".join(_seed_mean_cell(records, c, 1 if c == "advantage_pairs" else 2) for c in critic)
-        lines.append(f"| mean ± std | {summary} | {critic_means} | |")
-        lines += ["", *self.targets(means, records)]
-        return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
-
-    def targets(self, means: dict[str, list[float]], records: list[dict[str, Any]]) -> list[str]:
-        """The learning targets, each with its measured value."""
-        trained, init, greedy, milp = (np.array(means[c]) for c in ("trained", "untrained", "Greedy", "MILP"))
-        n = len(trained)
-        ratio = trained.mean() / init.mean() if init.mean() > 0 else float("nan")
-        corr = np.array([r["q_corr"] for r in records])
-        scale = np.array([r["q_scale"] for r in records])
-        timings = " / ".join(sorted({r.get("critic_reward", "completion") for r in records}))
-        milp_target = " (target ≥ 0.99)" if self.env == "EPT" else " (goal ≥ 1)"
-        paired = {c: seed_mean(records, c) for c in CRITIC_ADVANTAGE} if has_branched(records, CRITIC_ADVANTAGE) else {}
-        lines = [
-            f"- trained / untrained (means): {ratio:.3f} (target ≥ 1.10)",
-            f"- trained > untrained: {int((trained > init).sum())} of {n} seeds (target ≥ 4 of 5)",
-            f"- trained > Greedy: {int((trained > greedy).sum())} of {n} seeds (target all)",
-            f"- trained / per-step MILP (means): {trained.mean() / milp.mean():.3f}{milp_target}",
-            f"- critic: corr(Q, G) {corr.mean():.2f} (target ≥ 0.7), scale Q/G {scale.mean():.2f} (target 0.7–1.3); G is the "
-            f"discounted return of the reward the critic learns (credited at {timings})",
-            *(
-                [
-                    f"- critic against the expected return Ḡ (the mean of branched rollouts): corr(Q, Ḡ) "
-                    f"{np.mean([r['q_corr_expected'] for r in records]):.2f}, scale Q/Ḡ "
-                    f"{np.mean([r['q_scale_expected'] for r in records]):.2f}; a perfect critic would reach corr(Q, G) "
-                    f"{np.mean([r['return_ceiling'] for r in records]):.2f} (the noise of one rollout)",
-                ]
-                if has_branched(records)
-                else []
-            ),
-            *(
-                [
-                    f"- the critic between two sampled decisions of a state (what the actor follows; "
-                    f"{sum(r['advantage_pairs'] for r in records)} pairs where they differ): corr(ΔQ, ΔḠ) "
-                    f"{paired['advantage_corr'][0]:.2f} against a ceiling of {paired['advantage_ceiling'][0]:.2f} (the "
-                    f"noise of the paired branches); ΔQ has the sign of ΔḠ in {100 * paired['advantage_sign'][0]:.0f} % of "
-                    "the pairs"
-                    + (
-                        f" (means over the {paired['advantage_corr'][1]} of {n} seeds with such pairs)"
-                        if paired["advantage_corr"][1] < n
-                        else ""
-                    ),
-                ]
-                if paired
-                else []
-            ),
-            f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
-        ]
-        if all("curve_seconds" in r for r in records):  # what a training without the experiment's curve takes
-            total = np.array([r["train_seconds"] for r in records])
-            curve = np.array([r["curve_seconds"] for r in records])
-            bare = total - curve
-            lines += [
-                f"- training time per seed: {total.min():.0f}–{total.max():.0f} s, of which the curve's evaluations "
-                f"{curve.min():.0f}–{curve.max():.0f} s: {bare.min():.0f}–{bare.max():.0f} s without them",
-            ]
-        if "best" in means:  # the same targets for the checkpoint the validation episodes pick
-            best = np.array(means["best"])
-            lines += [
-                f"- best on validation / untrained (means): {best.mean() / init.mean():.3f}, above untrained in "
-                f"{int((best > init).sum())} of {n} seeds, above Greedy in {int((best > greedy).sum())} of {n}, "
-                f"{best.mean() / milp.mean():.3f} × per-step MILP; std over seeds {best.std():.1f}",
-            ]
-        return lines
+        return learn_report.write(self, records)
 
     def zero_shot(self, shift: str) -> Path:
-        """Each finished seed's trained model on another env without training (``shift``, e.g. ``"RBF-EntityShift"``),
-        against the same policy untrained and Greedy on that env's held-out episodes of the seed; writes
-        ``<out>/<env>_zero_shot_<shift>.md`` and ``.json``. :return: the Markdown path."""
-        return self.reevaluate(shift)
+        """Each finished seed's trained model on another env without training (``shift``, e.g. ``"RBF-EntityShift"``);
+        see :func:`.reevaluate.reevaluate`. :return: the Markdown path."""
+        return reevaluate.reevaluate(self, shift)
 
     def reevaluate(
         self,
@@ -693,118 +373,13 @@ class LearnRun:
         decoder_kwargs: dict[str, Any] | None = None,
         more_episodes: int = 0,
     ) -> Path:
-        """Each finished seed's trained model and the same policy untrained, on the seed's held-out episodes of another
-        env (``shift``, zero-shot) or of the training env, both decoded by the strategy ``decoder`` with
-        ``decoder_kwargs`` (:mod:`~sb3_taskalloc.two_stage_sac.decoding`), against Greedy (and the per-step MILP on the
-        training env); writes ``<out>/<env>[_zero_shot_<shift>][_decoder_<name>...]``, ``.md`` and ``.json``. Training
-        is untouched: its sampled decisions never search. Each seed's row is saved as it finishes, under a digest of its
-        model file and of the model's decisions on a few fixed states (:func:`decision_digest`), so an interrupted
-        re-evaluation resumes at the seed it stopped in and a change of code that moves those decisions evaluates again.
-
-        :param more_episodes: instead, the plain argmax on this many further held-out episodes per seed of the training
-            env (the reset seeds that follow the run's own, :func:`eval_seeds`), against Greedy only; the report also
-            counts the seeds above Greedy over all the run's and the further episodes, whose seed means carry a smaller
-            standard error than the run's own (``<out>/<env>_more_episodes_<N>``)
-        :return: the Markdown path."""
-        from sb3_taskalloc import TwoStageSAC
-        from sb3_taskalloc import baselines as b
-        from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
-
-        env_id = f"TaskAlloc/{shift}-v0" if shift else self.env_id
-        config = dict(decoder_kwargs or {})
-        strategy = get_decoding_strategy(decoder, **config)  # a bad name or setting fails before any evaluation
-        self.check_more_episodes(more_episodes)
-        if more_episodes and (shift or decoder != "argmax"):
-            raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no decoder")
-        suffix, how, flags = _reevaluation_labels(shift, decoder, config, more_episodes)
-        stem = Path(self.out) / (self.env + suffix)
-        rows: list[dict[str, Any]] = []
-        for seed in self.seed_range:
-            path = self.seed_path(seed).with_suffix(".zip")
-            if not path.exists():
-                raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
-            model_digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-            trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
-            trained.set_decoder(decoder, **config)
-            decisions = decision_digest(trained, env_id)
-            done = self.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{self.key}.json")
-            saved = json.loads(done.read_text()) if done.exists() else {}
-            if saved.get("model_digest") == model_digest and saved.get("decisions") == decisions:
-                rows.append(saved)
-                continue
-            seeds = eval_seeds(seed, self.eval_episodes + more_episodes)[self.eval_episodes if more_episodes else 0 :]
-            untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=trained.policy_kwargs)
-            untrained.set_decoder(get_decoding_strategy(decoder, **config))
-            row = {"seed": seed, "trained": episode_returns(trained, env_id, seeds),
-                   "untrained": episode_returns(untrained, env_id, seeds)}  # fmt: skip
-            if shift or more_episodes:  # the per-step MILP takes seconds per step: the training env's held-out episodes only
-                row["Greedy"] = episode_returns(b.GreedyAllocator(), env_id, seeds)
-            else:
-                row.update(self.baselines(seed))
-            row["model_digest"], row["decisions"] = model_digest, decisions
-            atomic_write_text(done, json.dumps(row) + "\n")
-            rows.append(row)
-        settings = {"settings": self.describe(), "env": env_id, "decoder": repr(strategy), "seeds": rows}
-        atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
-        columns = ["untrained", "trained", "Greedy", *([] if shift or more_episodes else ["MILP"])]
-        means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
-        lines = [
-            f"# {env_id}: {how}, the models of `{self.env}.md` ({self.steps:,} steps on {self.env_id})",
-            "",
-            f"Command: `{self.command()}{flags}`",
-            "",
-            "| seed | " + " | ".join(columns) + " |",
-            "|---" * (len(columns) + 1) + "|",
-            *(f"| {r['seed']} | " + " | ".join(f"{means[c][k]:.1f}" for c in columns) + " |" for k, r in enumerate(rows)),
-            "| mean ± std | " + " | ".join(f"{means[c].mean():.1f} ± {means[c].std():.1f}" for c in columns) + " |",
-            "",
-            f"- trained ≥ Greedy: {int((means['trained'] >= means['Greedy']).sum())} of {len(rows)} seeds (target all)",
-            f"- trained > untrained: {int((means['trained'] > means['untrained']).sum())} of {len(rows)} seeds, "
-            f"{means['trained'].mean() / means['untrained'].mean():.3f} × (means)",
-            *(
-                []
-                if shift or more_episodes
-                else [f"- trained / per-step MILP (means): {means['trained'].mean() / means['MILP'].mean():.3f}"]
-            ),
-            *(self._over_all_episodes(rows) if more_episodes else []),
-        ]
-        return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+        """Each finished seed's trained model and the same policy untrained, zero-shot on ``shift``, decoded by
+        ``decoder`` or on ``more_episodes`` further held-out episodes (:func:`.reevaluate.reevaluate`)."""
+        return reevaluate.reevaluate(self, shift, decoder, decoder_kwargs, more_episodes)
 
     def check_more_episodes(self, more_episodes: int) -> None:
-        """A clear error where :meth:`reevaluate`'s ``more_episodes`` is neither 0 (off) nor a positive integer, or would
-        reach into the next training seed's held-out reset seeds (each seed has :data:`EPISODES_PER_SEED`)."""
-        if more_episodes:
-            check_counts({"more_episodes": more_episodes})
-        if self.eval_episodes + more_episodes > EPISODES_PER_SEED:
-            raise ValueError(
-                f"eval_episodes + more_episodes must be at most {EPISODES_PER_SEED} (each seed's share of the held-out "
-                f"reset seeds), got {self.eval_episodes} + {more_episodes}"
-            )
-
-    def _over_all_episodes(self, rows: list[dict[str, Any]]) -> list[str]:
-        """The report's lines of :meth:`reevaluate`'s ``more_episodes``: each seed over the run's own held-out episodes
-        and the further ones together, with the standard error of its mean lead over Greedy (paired by episode)."""
-        header = "| seed | episodes | untrained | trained | Greedy | trained − Greedy ± s.e. |"
-        lines = ["", "Over the run's own and the further held-out episodes together:", "", header, "|---" * 6 + "|"]
-        leads, gains = [], []
-        for row in rows:
-            own = json.loads(self.seed_path(row["seed"]).read_text())
-            both = {c: np.array(own[c] + row[c]) for c in ("untrained", "trained", "Greedy")}
-            lead = both["trained"] - both["Greedy"]
-            leads.append(lead.mean())
-            gains.append(both["trained"].mean() - both["untrained"].mean())
-            lines.append(
-                f"| {row['seed']} | {lead.size} | {both['untrained'].mean():.1f} | {both['trained'].mean():.1f} | "
-                f"{both['Greedy'].mean():.1f} | {lead.mean():+.1f} ± {lead.std(ddof=1) / np.sqrt(lead.size):.1f} |"
-            )
-        leads_, gains_ = np.array(leads), np.array(gains)
-        return [
-            *lines,
-            "",
-            f"- trained ≥ Greedy: {int((leads_ >= 0).sum())} of {len(rows)} seeds over all episodes; lead {leads_.mean():+.1f}"
-            f" ± {leads_.std():.1f} per seed",
-            f"- trained > untrained: {int((gains_ > 0).sum())} of {len(rows)} seeds over all episodes",
-        ]
+        """A clear error for a bad ``more_episodes`` of :meth:`reevaluate` (:func:`.reevaluate.check_more_episodes`)."""
+        reevaluate.check_more_episodes(self, more_episodes)
 
     def describe(self) -> dict[str, Any]:
         return {

@@ -1,0 +1,191 @@
+"""The learning experiment's report (:class:`.learn.LearnRun`): per seed, mean ± std, the critic's figures and the
+targets, as Markdown, JSON and the curves' PNG."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sb3_taskalloc.common.utils import atomic_write_text
+from sb3_taskalloc.experiments.evaluation import seed_mean
+
+if TYPE_CHECKING:
+    from sb3_taskalloc.experiments.learn import LearnRun
+
+#: Headers of the critic's figures in the learning tables (:mod:`.diagnose`): against one rollout's return G, against
+#: the expected return Ḡ, the correlation a perfect critic would reach against G, with the number of free entities, and
+#: its preference between two decisions of a state against their paired branch returns (ΔQ against ΔḠ).
+CRITIC_COLUMNS = {
+    "q_corr": "corr(Q, G)",
+    "q_scale": "scale Q/G",
+    "q_corr_expected": "corr(Q, Ḡ)",
+    "q_scale_expected": "scale Q/Ḡ",
+    "return_ceiling": "ceiling",
+    "free_corr_q": "corr(Q, free)",
+    "free_corr_expected": "corr(Ḡ, free)",
+    "advantage_pairs": "pairs",
+    "advantage_corr": "corr(ΔQ, ΔḠ)",
+    "advantage_ceiling": "ΔḠ ceiling",
+    "advantage_sign": "same sign",
+}
+CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
+CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_corr", "advantage_ceiling", "advantage_sign"]
+
+
+def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
+    """Whether every record holds the critic's figures ``keys`` of the branched rollouts (:data:`CRITIC_BRANCHED`, or
+    :data:`CRITIC_ADVANTAGE`: each set came with a later version of :mod:`.diagnose`)."""
+    return all(k in r for r in records for k in keys)
+
+
+def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -> str:
+    """:func:`seed_mean` formatted, with the number of seeds it is over when some seeds lack the figure ("—" when none
+    has it)."""
+    mean, defined = seed_mean(records, name)
+    if not defined:
+        return "—"
+    return f"{mean:.{digits}f}" + (f" ({defined} of {len(records)} seeds)" if defined < len(records) else "")
+
+
+def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
+    """``<out>/<env>.json`` (per seed), ``.png`` (curves) and ``.md`` (per seed, mean ± std, targets)."""
+    from sb3_taskalloc.experiments.plots import plot_learning_progress
+
+    selected = ["best"] if all("best" in r for r in records) else []
+    stages = ["actor_only", "pointer_only"] if all("actor_only" in r for r in records) else []
+    dagger = ["before_dagger"] if all("before_dagger" in r for r in records) else []
+    columns = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP", *run.planners]
+    means = {c: [float(np.mean(r[c])) for r in records] for c in columns}
+    best_planner = max(run.planners, key=lambda p: float(np.mean(means[p]))) if run.planners else None
+    stem = Path(run.out) / run.env
+    atomic_write_text(stem.with_suffix(".json"), json.dumps({"settings": run.describe(), "seeds": records}) + "\n")
+    png = plot_learning_progress(
+        {r["seed"]: r["curve"] for r in records},
+        {"Greedy": float(np.mean(means["Greedy"])), "MILP": float(np.mean(means["MILP"]))},
+        stem.with_suffix(".png"),
+        f"{run.env_id}: deterministic return on {'validation' if run.validation_episodes else 'held-out'} episodes "
+        "while training",
+        marks={f"DAgger ({run.select_dagger} iterations) from here": run.steps} if dagger else None,
+    )
+    shown = ["untrained", "trained", *dagger, *stages, *selected, "Greedy", "MILP"]
+    shown += [best_planner] if best_planner else []
+    names = {"best": "best on validation", "actor_only": "only actor learned", "pointer_only": "only pointer learned",
+             "before_dagger": "before DAgger"}  # fmt: skip
+    headers = [names.get(c, c) for c in shown]
+    critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
+    critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
+    critic_headers = [CRITIC_COLUMNS[c] for c in critic]
+    lines = [
+        f"# {run.env_id}: TwoStageSAC trained {run.steps:,} steps, {len(records)} seeds"
+        + (f" ({run.seed_range[0]}–{run.seed_range[-1]})" if run.first_seed else "")
+        + f" × {run.eval_episodes} held-out episodes"
+        + (" (trained on CUDA)" if run.device == "cuda" else ""),
+        "",
+        f"Command: `{run.command()}`. Curve: `{png.name}`.",
+        "",
+        *(
+            [
+                "Trained: the final model. Best: the checkpoint with the best return on the validation episodes (the "
+                "curve), evaluated on the held-out ones.",
+                "",
+            ]
+            if selected
+            else []
+        ),
+        *(
+            [
+                f"Trained: {run.steps:,} steps of TwoStageSAC, then {run.select_dagger} DAgger iterations teaching "
+                "the pointer the exact cover of its candidates (`TwoStageSAC.distill_select`); before DAgger: the "
+                "model after the steps alone.",
+                "",
+            ]
+            if dagger
+            else []
+        ),
+        *(
+            [
+                "Only actor / pointer learned: the final model with the other stage back at its initial rule (which "
+                "stage's learning the trained return owes to).",
+                "",
+            ]
+            if stages
+            else []
+        ),
+        "| seed | " + " | ".join(headers) + " | " + " | ".join(critic_headers) + " | training s |",
+        "|---" * (len(shown) + len(critic) + 2) + "|",
+    ]
+    for k, r in enumerate(records):
+        cells = " | ".join(f"{means[c][k]:.1f}" for c in shown)
+        figures = " | ".join(f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic)
+        lines.append(f"| {r['seed']} | {cells} | {figures} | {r['train_seconds']:.0f} |")
+    summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
+    critic_means = " | ".join(_seed_mean_cell(records, c, 1 if c == "advantage_pairs" else 2) for c in critic)
+    lines.append(f"| mean ± std | {summary} | {critic_means} | |")
+    lines += ["", *targets(run, means, records)]
+    return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+
+
+def targets(run: LearnRun, means: dict[str, list[float]], records: list[dict[str, Any]]) -> list[str]:
+    """The learning targets, each with its measured value."""
+    trained, init, greedy, milp = (np.array(means[c]) for c in ("trained", "untrained", "Greedy", "MILP"))
+    n = len(trained)
+    ratio = trained.mean() / init.mean() if init.mean() > 0 else float("nan")
+    corr = np.array([r["q_corr"] for r in records])
+    scale = np.array([r["q_scale"] for r in records])
+    timings = " / ".join(sorted({r.get("critic_reward", "completion") for r in records}))
+    milp_target = " (target ≥ 0.99)" if run.env == "EPT" else " (goal ≥ 1)"
+    paired = {c: seed_mean(records, c) for c in CRITIC_ADVANTAGE} if has_branched(records, CRITIC_ADVANTAGE) else {}
+    lines = [
+        f"- trained / untrained (means): {ratio:.3f} (target ≥ 1.10)",
+        f"- trained > untrained: {int((trained > init).sum())} of {n} seeds (target ≥ 4 of 5)",
+        f"- trained > Greedy: {int((trained > greedy).sum())} of {n} seeds (target all)",
+        f"- trained / per-step MILP (means): {trained.mean() / milp.mean():.3f}{milp_target}",
+        f"- critic: corr(Q, G) {corr.mean():.2f} (target ≥ 0.7), scale Q/G {scale.mean():.2f} (target 0.7–1.3); G is the "
+        f"discounted return of the reward the critic learns (credited at {timings})",
+        *(
+            [
+                f"- critic against the expected return Ḡ (the mean of branched rollouts): corr(Q, Ḡ) "
+                f"{np.mean([r['q_corr_expected'] for r in records]):.2f}, scale Q/Ḡ "
+                f"{np.mean([r['q_scale_expected'] for r in records]):.2f}; a perfect critic would reach corr(Q, G) "
+                f"{np.mean([r['return_ceiling'] for r in records]):.2f} (the noise of one rollout)",
+            ]
+            if has_branched(records)
+            else []
+        ),
+        *(
+            [
+                f"- the critic between two sampled decisions of a state (what the actor follows; "
+                f"{sum(r['advantage_pairs'] for r in records)} pairs where they differ): corr(ΔQ, ΔḠ) "
+                f"{paired['advantage_corr'][0]:.2f} against a ceiling of {paired['advantage_ceiling'][0]:.2f} (the "
+                f"noise of the paired branches); ΔQ has the sign of ΔḠ in {100 * paired['advantage_sign'][0]:.0f} % of "
+                "the pairs"
+                + (
+                    f" (means over the {paired['advantage_corr'][1]} of {n} seeds with such pairs)"
+                    if paired["advantage_corr"][1] < n
+                    else ""
+                ),
+            ]
+            if paired
+            else []
+        ),
+        f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
+    ]
+    if all("curve_seconds" in r for r in records):  # what a training without the experiment's curve takes
+        total = np.array([r["train_seconds"] for r in records])
+        curve = np.array([r["curve_seconds"] for r in records])
+        bare = total - curve
+        lines += [
+            f"- training time per seed: {total.min():.0f}–{total.max():.0f} s, of which the curve's evaluations "
+            f"{curve.min():.0f}–{curve.max():.0f} s: {bare.min():.0f}–{bare.max():.0f} s without them",
+        ]
+    if "best" in means:  # the same targets for the checkpoint the validation episodes pick
+        best = np.array(means["best"])
+        lines += [
+            f"- best on validation / untrained (means): {best.mean() / init.mean():.3f}, above untrained in "
+            f"{int((best > init).sum())} of {n} seeds, above Greedy in {int((best > greedy).sum())} of {n}, "
+            f"{best.mean() / milp.mean():.3f} × per-step MILP; std over seeds {best.std():.1f}",
+        ]
+    return lines
