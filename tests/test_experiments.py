@@ -149,7 +149,7 @@ def test_table_trains_on_the_zoo_configs_n_envs(tmp_path, monkeypatch):
     """A zoo config with ``n_envs`` (rl-zoo3's key for vectorised collection) trains the TwoStageSAC columns on that many
     envs, each logging its episodes; the curves merge the logs, and the zero-shot and few-shot rows load the model on
     one env of another size."""
-    from sb3_taskalloc.experiments import table
+    from sb3_taskalloc.experiments import table, table_report
 
     zoo = table.zoo_hyperparameters
     monkeypatch.setattr(table, "zoo_hyperparameters", lambda env_id: {**zoo(env_id), "n_envs": 2})
@@ -157,13 +157,13 @@ def test_table_trains_on_the_zoo_configs_n_envs(tmp_path, monkeypatch):
     run.run()
     model = run.trained("Ours", 0)
     assert model.n_envs == 2 and model.num_timesteps == run.budget.steps("RBF", run.budget.train_episodes)
-    logs = table.env_logs(run._log_path("Ours", 0), 2)
+    logs = table_report.env_logs(run._log_path("Ours", 0), 2)
     assert all(log.exists() for log in logs) and not run._log_path("Ours", 0).exists()
     per_env = [len(log.read_text().strip().splitlines()) - 2 for log in logs]
-    assert len(table.logged_returns(logs)) == sum(per_env) > 0
+    assert len(table_report.logged_returns(logs)) == sum(per_env) > 0
     cells = {(r["row"]): r["value"] for r in csv.DictReader(run.cells_path.open())}
     assert all(np.isfinite(float(cells[row])) for row in ("train", "zero-shot (entity)", "few-shot (entity)"))
-    few_shot = table.env_logs(run._log_path("Ours", 0, "few-shot (entity)"), 2)  # fine-tuned on 2 envs of the preset
+    few_shot = table_report.env_logs(run._log_path("Ours", 0, "few-shot (entity)"), 2)  # fine-tuned on 2 envs of the preset
     assert all(log.exists() for log in few_shot)
     assert (run.folder / "curves.png").exists()
 
