@@ -1,0 +1,152 @@
+"""Decision latency: the policy over real RBF episode states and at scale, each decoding strategy, and the exact
+covers that label DAgger."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    pass
+
+from sb3_taskalloc.experiments.bench.common import (
+    bench_devices,
+    episode_states,
+    median_ms,
+    rbf_model,
+    scaled_rbf,
+    state_latencies_ms,
+    sync,
+)
+
+#: Pre-assignments of the decision-time search row (the ``preassign_search`` decoder; implementation detail 16).
+SEARCH = 32
+
+
+#: Teams per task of the decision-time team search row (the ``team_search`` decoder; implementation detail 20).
+TEAM_SEARCH = 64
+
+
+#: The trained policy's rows: its decoding strategies by name (:mod:`~sb3_taskalloc.two_stage_sac.decoding`) with
+#: their settings, and the words they add to the row's name.
+DECODER_ROWS: tuple[tuple[str, dict[str, Any], str], ...] = (
+    ("argmax", {}, ""),
+    ("preassign_search", {"samples": SEARCH}, f", search of {SEARCH}"),
+    ("team_search", {"samples": TEAM_SEARCH}, f", team search of {TEAM_SEARCH}"),
+    ("exact_covers", {}, ", exact covers"),
+    ("exact_top", {"top": 1}, ", exact pre-assignment among each entity's top task"),
+)
+
+
+def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[dict[str, Any]]:
+    """Decision latency over the states of seeded RBF episodes (median and p90) of a trained model (``--model``, or
+    TwoStageSAC trained here for ``--train-steps`` at the defaults) and of the same policy untrained, with Greedy for
+    reference: a reset state has more free entities and fewer open tasks than the states of an episode."""
+    import gymnasium as gym
+    import torch as th
+
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.baselines import GreedyAllocator
+
+    env_id = "TaskAlloc/RBF-v0"
+    seeds = [30_000] if args.quick else [30_000, 30_001, 30_002]
+    trained, source = rbf_model(args)
+    th.manual_seed(0)
+    untrained = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
+    states = episode_states(trained, env_id, seeds)
+    rows = []
+    for device in devices:
+        searched = [("trained", trained, *row) for row in DECODER_ROWS]
+        for name, agent, decoder, config, words in [searched[0], ("untrained", untrained, "argmax", {}, ""), *searched[1:]]:
+            agent.policy.to(device)
+            agent.device = th.device(device)
+            with agent.decoding(decoder, **config):
+                ms = state_latencies_ms(agent, states, device)
+            rows.append(
+                {"device": device, "policy": f"TAMPolicy {name}{words}", "decoder": decoder,
+                 "states": len(states), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
+                 "model": source if name == "trained" else None,
+                 "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if decoder == "argmax" else None}
+            )  # fmt: skip
+    ms = state_latencies_ms(GreedyAllocator(), states)
+    rows.append({"device": "cpu", "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
+                 "p90_ms": float(np.percentile(ms, 90))})  # fmt: skip
+    return rows
+
+
+def bench_labels(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The exact covers that label the pointer's DAgger (:meth:`~sb3_taskalloc.TwoStageSAC.distill_select`): every
+    pre-assign round of seeded RBF episodes of a trained model's deterministic policy (``--model``), covered task by
+    task (branch and bound, :func:`~sb3_taskalloc.baselines.milp.max_profit_team`) and by one HiGHS solve per round
+    (the per-step MILP's formulation on the candidate pairs): seconds per round of each, and the largest difference
+    between the two covers' profits (both exact: 0 up to the solvers' tolerances)."""
+    import torch as th
+
+    from sb3_taskalloc.two_stage_sac.search import exact_covers
+
+    model, source = rbf_model(args)
+    policy = model.policy
+    rounds: list[tuple[Any, th.Tensor]] = []
+    for obs in episode_states(model, "TaskAlloc/RBF-v0", [30_000] if args.quick else [30_000, 30_001, 30_002]):
+        with th.inference_mode():
+            policy.decide(policy.parse(policy.obs_to_tensor(obs)[0]), deterministic=True, rounds_out=rounds)
+    M = rounds[0][0].task_mask.shape[1]
+    tasks = sum(int((t.unsqueeze(-1) == th.arange(M)).any(1).sum()) for _, t in rounds)
+    rows: list[dict[str, Any]] = []
+    profits = []
+    for by_task, name in ((True, "task by task (branch and bound)"), (False, "one HiGHS solve per round")):
+        seconds, profit = 0.0, []
+        for view, task_of in rounds:
+            allowed = task_of.unsqueeze(-1) == th.arange(M)
+            t0 = time.perf_counter()
+            members = exact_covers(view, allowed, by_task=by_task)
+            seconds += time.perf_counter() - t0
+            team = (members.unsqueeze(-1) == th.arange(M)).double()  # (B, N, M)
+            kept = team.any(1)
+            profit.append((view.reward.double() * kept - (view.pair_cost.double() * team).sum(1)).sum(-1))
+        profits.append(th.cat(profit))
+        rows.append({"labeller": name, "rounds": len(rounds), "tasks": tasks,
+                     "ms_per_round": seconds / len(rounds) * 1e3, "seconds": seconds, "model": source})  # fmt: skip
+    rows[0]["speedup"] = rows[1]["seconds"] / rows[0]["seconds"]
+    rows[0]["max_profit_difference"] = float((profits[0] - profits[1]).abs().max())
+    return rows
+
+
+def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """TAMPolicy decision latency: over the states of seeded RBF episodes (:func:`bench_policy_episodes`), then on one
+    reset RBF observation, a batch of 256, and the N × M scaling table of reset states (CPU; CUDA when available)."""
+    import torch as th
+    from stable_baselines3.common.utils import obs_as_tensor
+
+    from sb3_taskalloc import TAMPolicy
+
+    devices = bench_devices(args)
+    rows: list[dict[str, Any]] = bench_policy_episodes(args, devices)
+    sizes = [(100, 10)] + [(n, m) for n in (50, 100, 500, 1000) for m in (5, 10, 50)]
+    if args.quick:
+        sizes = [(100, 10), (50, 5)]
+    for device in devices:
+        for i, (n, m) in enumerate(sizes):
+            env = scaled_rbf(n, m)
+            obs, _ = env.reset(seed=0)
+            th.manual_seed(0)
+            policy = TAMPolicy(env.observation_space, env.action_space, lambda _: 3e-4).to(device)  # type: ignore[arg-type]
+            policy.set_training_mode(False)
+            reps = 5 if (args.quick or n * m >= 50_000) else 30
+            row: dict[str, Any] = {"device": device, "entities": n, "tasks": m}
+            row["predict_ms"] = median_ms(lambda: policy.predict(obs, deterministic=True), reps)  # noqa: B023
+            if i == 0:
+                batch = obs_as_tensor({k: np.repeat(v[None], 256, 0) for k, v in obs.items()}, th.device(device))
+
+                def decide_batch(policy: TAMPolicy = policy, batch: Any = batch, device: str = device) -> None:
+                    with th.no_grad():
+                        policy.decide(policy.parse(batch), deterministic=True)
+                        sync(device)
+
+                row["batch256_ms_per_obs"] = median_ms(decide_batch, 3 if args.quick else 10, warmup=1) / 256
+                row["target"] = "predict <= 5 ms, batch 256 <= 0.5 ms/obs"
+            rows.append(row)
+    return rows
