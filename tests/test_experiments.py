@@ -621,7 +621,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
         planners=("GeneticAlgorithm",),
         out=tmp_path,
     )
-    monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
+    monkeypatch.setattr(evaluation, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
     text = run.run(progress=False).read_text()
     header = "| seed | untrained | trained | only actor learned | only pointer learned | Greedy | MILP | GeneticAlgorithm |"
     assert header in text and "trained > Greedy:" in text
@@ -683,7 +683,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert run.run(progress=False).read_text() == text
     # Other algorithm settings train again but share the baselines, computed once per seed.
     monkeypatch.undo()
-    monkeypatch.setattr(learn, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
+    monkeypatch.setattr(evaluation, "PLANNER_BUDGET", {"population": 4, "budget": 8, "horizon": 2, "tail": 0})
     monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("a baseline was run again"))
     other = learn.LearnRun(
         "EPT", seeds=2, steps=10, eval_episodes=2, eval_every=5, algo_kwargs={**kwargs, "n_envs": 2}, planners=(),

@@ -5,14 +5,19 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import json
 import os
 import time
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_taskalloc.common.utils import atomic_write_text
+from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings
 
 #: Planners run at the experiments' budget (rollouts per re-plan are what makes them slow).
 PLANNERS = ("GeneticAlgorithm", "ParticleSwarm", "SymbioticOrganismsSearch")
@@ -145,3 +150,31 @@ class Curve(BaseCallback):
         if self.num_timesteps // self.every > (self.num_timesteps - self.training_env.num_envs) // self.every:
             self._evaluate()
         return True
+
+
+def baseline_returns(run: Any, seed: int) -> dict[str, list[float]]:
+    """Greedy, the per-step MILP and the planners on seed ``seed``'s evaluation episodes. They depend on the env,
+    the episodes and their own budgets only, so they are filed under a digest of those and shared by every run of
+    the algorithm's settings (each is computed once)."""
+    from sb3_taskalloc import baselines as b
+
+    seeds = eval_seeds(seed, run.eval_episodes)
+    key = config_key(env_settings(run.env_id), seeds, run.milp_time_limit, PLANNER_BUDGET)
+    path = Path(run.out) / run.env / f"baselines_seed_{seed}_{key}.json"
+    done: dict[str, list[float]] = json.loads(path.read_text()) if path.exists() else {}
+    agents: dict[str, Callable[[], list[float]]] = {
+        "Greedy": lambda: episode_returns(b.GreedyAllocator(), run.env_id, seeds),
+        "MILP": lambda: episode_returns(b.MILPAllocator(time_limit=run.milp_time_limit), run.env_id, seeds),
+    }
+    for name in run.planners:
+        cls = getattr(b, name)
+
+        def planner(env: gym.Env, cls: Any = cls) -> Any:
+            return cls(env, seed=seed, **PLANNER_BUDGET)
+
+        agents[name] = lambda planner=planner: episode_returns(None, run.env_id, seeds, planner)  # type: ignore[misc]
+    for name, evaluate in agents.items():
+        if name not in done:
+            done[name] = evaluate()
+            atomic_write_text(path, json.dumps(done) + "\n")
+    return {name: done[name] for name in agents}

@@ -29,19 +29,15 @@ import io
 import json
 import os
 import time
-import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
-
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments import evaluation, learn_report, reevaluate
-from sb3_taskalloc.experiments.budgets import PLANNER_BUDGET, config_key, env_settings, over_zoo, training_env, zoo_dagger
+from sb3_taskalloc.experiments.budgets import config_key, env_settings, over_zoo, training_env, zoo_dagger
 from sb3_taskalloc.experiments.evaluation import PLANNERS, Curve, eval_seeds, one_thread, validation_seeds
-from sb3_taskalloc.experiments.learn_report import CRITIC_ADVANTAGE, CRITIC_BRANCHED, has_branched
 
 # The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
 # validation (30,000 + 100·seed) and diagnosis episodes; SelectDAggerCallback rolls out the same episodes by default.
@@ -157,7 +153,7 @@ class LearnRun:
         """Train and evaluate one seed (or read it back when it was finished before)."""
         path = self.seed_path(seed)
         if path.exists():
-            return self._complete(json.loads(path.read_text()), path)
+            return learn_report.complete_record(self, json.loads(path.read_text()), path)
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
         seeds = eval_seeds(seed, self.eval_episodes)
@@ -170,7 +166,7 @@ class LearnRun:
         record["curve"] = curve.points
         record["trained"] = evaluation.episode_returns(model, self.env_id, seeds)
         record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
-        record.update(self._diagnose(model, seed))
+        record.update(learn_report.diagnose_record(self, model, seed))
         record.update(self.baselines(seed))
         model.save(path.with_suffix(".zip"))
         atomic_write_text(path, json.dumps(record) + "\n")
@@ -265,73 +261,10 @@ class LearnRun:
         kept = ("seed", "eval_seeds", "untrained", "train_seconds", "curve_seconds", "best", "best_step")
         return model, {k: done[k] for k in kept if k in done}, curve
 
-    def _diagnose(self, model: Any, seed: int) -> dict[str, Any]:
-        """The critic's calibration and the sampled return of the trained model (:func:`.diagnose.diagnose`)."""
-        from sb3_taskalloc.experiments.diagnose import diagnose
-
-        d = diagnose(model, self.env_id, episodes=min(3, self.eval_episodes), seed=20_000 + 100 * seed)
-        branched = {k: getattr(d, k) for k in [*CRITIC_BRANCHED, *CRITIC_ADVANTAGE]}
-        return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing, **branched)
-
-    def _complete(self, record: dict[str, Any], path: Path) -> dict[str, Any]:
-        """A finished seed, with what later versions measure added from its saved model (and saved):
-
-        - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
-          critic's own reward unless it learned the commitment reward: then the figures are measured again;
-        - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`;
-        - a record without the figures of :data:`CRITIC_BRANCHED` or :data:`CRITIC_ADVANTAGE` gets them, the critic
-          against the expected return (the same seeded diagnosis, so its other critic figures come out as they were).
-
-        Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
-        """
-        stale = "critic_reward" not in record and self.hyperparameters.get("reward_timing", "completion") == "commitment"
-        if "critic_reward" not in record and not stale:
-            record = {**record, "critic_reward": "completion"}
-        branched = has_branched([record]) and has_branched([record], CRITIC_ADVANTAGE)
-        if not stale and "actor_only" in record and branched:
-            return record
-        zip_path = path.with_suffix(".zip")
-        if not zip_path.exists():
-            if stale:
-                warnings.warn(f"{path}: critic figures measured against the env reward, {zip_path.name} is gone", stacklevel=2)
-            return record
-        from sb3_taskalloc import TwoStageSAC
-        from sb3_taskalloc.experiments.diagnose import stage_returns
-
-        model = TwoStageSAC.load(zip_path, device="cpu")
-        if stale or not branched:
-            record = {**record, **self._diagnose(model, record["seed"])}
-        if "actor_only" not in record:
-            record = {**record, **stage_returns(model, self.env_id, record["eval_seeds"])}
-        atomic_write_text(path, json.dumps(record) + "\n")
-        return record
-
     def baselines(self, seed: int) -> dict[str, list[float]]:
-        """Greedy, the per-step MILP and the planners on seed ``seed``'s evaluation episodes. They depend on the env,
-        the episodes and their own budgets only, so they are filed under a digest of those and shared by every run of
-        the algorithm's settings (each is computed once)."""
-        from sb3_taskalloc import baselines as b
-
-        seeds = eval_seeds(seed, self.eval_episodes)
-        key = config_key(env_settings(self.env_id), seeds, self.milp_time_limit, PLANNER_BUDGET)
-        path = Path(self.out) / self.env / f"baselines_seed_{seed}_{key}.json"
-        done: dict[str, list[float]] = json.loads(path.read_text()) if path.exists() else {}
-        agents: dict[str, Callable[[], list[float]]] = {
-            "Greedy": lambda: evaluation.episode_returns(b.GreedyAllocator(), self.env_id, seeds),
-            "MILP": lambda: evaluation.episode_returns(b.MILPAllocator(time_limit=self.milp_time_limit), self.env_id, seeds),
-        }
-        for name in self.planners:
-            cls = getattr(b, name)
-
-            def planner(env: gym.Env, cls: Any = cls) -> Any:
-                return cls(env, seed=seed, **PLANNER_BUDGET)
-
-            agents[name] = lambda planner=planner: evaluation.episode_returns(None, self.env_id, seeds, planner)  # type: ignore[misc]
-        for name, run in agents.items():
-            if name not in done:
-                done[name] = run()
-                atomic_write_text(path, json.dumps(done) + "\n")
-        return {name: done[name] for name in agents}
+        """Greedy, the per-step MILP and the planners on seed ``seed``'s evaluation episodes (:func:`.evaluation.
+        baseline_returns`, computed once per seed and shared by every run of the algorithm's settings)."""
+        return evaluation.baseline_returns(self, seed)
 
     def run(self, progress: bool = True, jobs: int = 1) -> Path:
         """Every seed (resuming), then the summary; :return: the Markdown path.

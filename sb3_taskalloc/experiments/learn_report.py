@@ -4,6 +4,7 @@ targets, as Markdown, JSON and the curves' PNG."""
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -189,3 +190,46 @@ def targets(run: LearnRun, means: dict[str, list[float]], records: list[dict[str
             f"{best.mean() / milp.mean():.3f} × per-step MILP; std over seeds {best.std():.1f}",
         ]
     return lines
+
+
+def diagnose_record(run: LearnRun, model: Any, seed: int) -> dict[str, Any]:
+    """The critic's calibration and the sampled return of the trained model (:func:`.diagnose.diagnose`)."""
+    from sb3_taskalloc.experiments.diagnose import diagnose
+
+    d = diagnose(model, run.env_id, episodes=min(3, run.eval_episodes), seed=20_000 + 100 * seed)
+    branched = {k: getattr(d, k) for k in [*CRITIC_BRANCHED, *CRITIC_ADVANTAGE]}
+    return dict(q_corr=d.q_corr, q_scale=d.q_scale, sampled=d.sampled_return, critic_reward=d.reward_timing, **branched)
+
+
+def complete_record(run: LearnRun, record: dict[str, Any], path: Path) -> dict[str, Any]:
+    """A finished seed, with what later versions measure added from its saved model (and saved):
+
+    - a record without ``critic_reward`` had its critic compared with returns of the env reward. That is the
+      critic's own reward unless it learned the commitment reward: then the figures are measured again;
+    - a record without ``actor_only`` gets the returns of :func:`.diagnose.stage_returns`;
+    - a record without the figures of :data:`CRITIC_BRANCHED` or :data:`CRITIC_ADVANTAGE` gets them, the critic
+      against the expected return (the same seeded diagnosis, so its other critic figures come out as they were).
+
+    Where the model is gone the record stays as it is (with a warning when its critic figures are wrong).
+    """
+    stale = "critic_reward" not in record and run.hyperparameters.get("reward_timing", "completion") == "commitment"
+    if "critic_reward" not in record and not stale:
+        record = {**record, "critic_reward": "completion"}
+    branched = has_branched([record]) and has_branched([record], CRITIC_ADVANTAGE)
+    if not stale and "actor_only" in record and branched:
+        return record
+    zip_path = path.with_suffix(".zip")
+    if not zip_path.exists():
+        if stale:
+            warnings.warn(f"{path}: critic figures measured against the env reward, {zip_path.name} is gone", stacklevel=2)
+        return record
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.diagnose import stage_returns
+
+    model = TwoStageSAC.load(zip_path, device="cpu")
+    if stale or not branched:
+        record = {**record, **diagnose_record(run, model, record["seed"])}
+    if "actor_only" not in record:
+        record = {**record, **stage_returns(model, run.env_id, record["eval_seeds"])}
+    atomic_write_text(path, json.dumps(record) + "\n")
+    return record
