@@ -425,7 +425,7 @@ def test_diagnose_measures_calibration_and_drift(tmp_path):
 def test_calibration_figures_separate_the_critic_from_the_noise():
     """Returns G = μ + ε with Var μ = 1 and Var ε = 1 over K = 4 branches: the ceiling of corr(Q, G) is sqrt(1/2); a
     critic Q = μ correlates with the branch means Ḡ by sqrt(1 / (1 + 1/4)) and has scale Q/Ḡ = 1 / (1 + 1/4)."""
-    from sb3_taskalloc.experiments.diagnose import calibration_figures
+    from sb3_taskalloc.experiments.calibration import calibration_figures
 
     rng = np.random.default_rng(0)
     mu = rng.normal(size=20_000)
@@ -447,7 +447,7 @@ def test_advantage_figures_separate_the_critic_from_the_noise():
     """Paired differences d_k = Δμ + ε_k with Var Δμ = 1 and Var ε = 4 over K = 4 branches: the pair means have variance
     2, so a critic ΔQ = Δμ correlates with them by sqrt(1/2), the ceiling, and agrees in sign with probability
     1/2 + arcsin(sqrt(1/2))/π = 3/4 (bivariate normal); a critic blind to the decisions reaches neither."""
-    from sb3_taskalloc.experiments.diagnose import advantage_figures
+    from sb3_taskalloc.experiments.calibration import advantage_figures
 
     rng = np.random.default_rng(0)
     delta = rng.normal(size=40_000)
@@ -469,7 +469,7 @@ def test_branch_calibration_branches_the_env_randomness():
     import torch as th
 
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.diagnose import _branch_returns, branch_calibration
+    from sb3_taskalloc.experiments.calibration import _branch_returns, branch_calibration
 
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
     env = gym.make("TaskAlloc/RBF-v0")

@@ -46,16 +46,15 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal, SupportsFloat
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
 import torch as th
 
 from sb3_taskalloc.baselines.greedy import COVER_TOL
-from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import atomic_write_text
-from sb3_taskalloc.two_stage_sac.losses import state_entropy
+from sb3_taskalloc.experiments.calibration import branch_calibration, critic_figures, unlimited_env
 
 
 @dataclass
@@ -205,184 +204,6 @@ def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.n
     return np.array([int((o & open_).sum()) for o in outcomes])
 
 
-def _discounted(values: np.ndarray, gamma: float) -> np.ndarray:
-    out = np.zeros_like(values)
-    acc = 0.0
-    for t in range(len(values) - 1, -1, -1):
-        acc = values[t] + gamma * acc
-        out[t] = acc
-    return out
-
-
-def _corr(a: np.ndarray, b: np.ndarray) -> float:
-    if len(a) < 2 or a.std() == 0 or b.std() == 0:
-        return float("nan")
-    return float(np.corrcoef(a, b)[0, 1])
-
-
-def _stack(observations: list[dict[str, np.ndarray]], device: th.device) -> dict[str, th.Tensor]:
-    return {k: th.as_tensor(np.stack([o[k] for o in observations]), device=device) for k in observations[0]}
-
-
-def _horizon(gamma: float) -> int:
-    """Steps until the discount γ^k falls below 1 %: how far the critic's returns are summed."""
-    return math.ceil(math.log(0.01) / math.log(gamma))
-
-
-def _long_env(env_id: str, gamma: float) -> tuple[gym.Env, int | None]:
-    """``env_id`` with its time limit extended by :func:`_horizon` (the critic's returns do not stop at the limit), and
-    the limit proper (None without one)."""
-    limit = gym.spec(env_id).max_episode_steps
-    if limit is None:
-        return gym.make(env_id), None
-    return gym.make(env_id, max_episode_steps=limit + _horizon(gamma)), limit
-
-
-def _learned_reward(model: Any, reward: SupportsFloat, info: dict[str, Any]) -> float:
-    """The reward the stage-1 critic learns: the env reward, or the commitment reward (see the module docstring)."""
-    if getattr(model, "reward_timing", "completion") == "commitment":
-        return float(info["commitment_reward"])
-    return float(reward)
-
-
-def _branch_returns(model: Any, snapshot: gym.Env, action: np.ndarray, branches: int, horizon: int, key: int) -> np.ndarray:
-    """Discounted returns of ``branches`` copies of ``snapshot`` that take ``action`` and then sample the model's
-    decisions for ``horizon`` − 1 more steps (or until they end); copy k draws the env's randomness from seed
-    ``[key, k]``. The copies decide in one batched forward pass per step."""
-    policy, gamma = model.policy, float(model.gamma)
-    copies, obs = [], []
-    returns, alive = np.zeros(branches), np.ones(branches, dtype=bool)
-    for k in range(branches):
-        env = copy.deepcopy(snapshot)
-        env.unwrapped.np_random = np.random.default_rng([key, k])
-        o, reward, terminated, truncated, info = env.step(action)
-        returns[k] = _learned_reward(model, reward, info)
-        alive[k] = not (terminated or truncated)
-        copies.append(env)
-        obs.append(o)
-    for step in range(1, horizon):
-        live = np.flatnonzero(alive)
-        if len(live) == 0:
-            break
-        batch = {name: np.stack([obs[k][name] for k in live]) for name in obs[0]}
-        decision = policy.decide(policy.parse(policy.obs_to_tensor(batch)[0]), deterministic=False)
-        for row, k in enumerate(live.tolist()):
-            obs[k], reward, terminated, truncated, info = copies[k].step(decision.env_action[row].cpu().numpy())
-            returns[k] += gamma**step * _learned_reward(model, reward, info)
-            alive[k] = not (terminated or truncated)
-    return returns
-
-
-@th.no_grad()
-def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int = 8, stride: int = 10) -> dict[str, Any]:
-    """The critic against the expected return (see the module docstring): the figures ``branch_states``,
-    ``q_corr_expected``, ``q_scale_expected``, ``return_ceiling``, ``free_corr_q`` and ``free_corr_expected`` of
-    :class:`Diagnosis`, and the ``advantage_*`` figures of :func:`advantage_figures`, measured on sampled episodes with
-    reset seeds ``seeds`` (NaN without a pre-assign critic).
-
-    :param branches: rollouts per state (≥ 2: the ceiling needs their spread)
-    :param stride: every ``stride``-th state of an episode is branched
-    """
-    if branches < 2 or stride < 1:
-        raise ValueError(f"branches must be >= 2 and stride >= 1, got {branches} and {stride}")
-    policy, gamma = model.policy, float(model.gamma)
-    nan = float("nan")
-    out: dict[str, Any] = dict(branch_states=0, q_corr_expected=nan, q_scale_expected=nan, return_ceiling=nan)
-    out.update(free_corr_q=nan, free_corr_expected=nan, advantage_pairs=0, advantage_corr=nan, advantage_ceiling=nan)
-    out.update(advantage_sign=nan)
-    if policy.actor is None or policy.critic is None:
-        return out
-    env, limit = _long_env(env_id, gamma)
-    cuda = [model.device.index or 0] if model.device.type == "cuda" else []
-    q, returns, free, gaps, gap_returns = [], [], [], [], []
-    for s in seeds:
-        obs, _ = env.reset(seed=s)
-        for t in range(limit if limit is not None else 10**9):
-            view = policy.parse(policy.obs_to_tensor(obs)[0])
-            decision = policy.decide(view, deterministic=False)
-            action = decision.env_action[0].cpu().numpy()
-            if t % stride == 0 and bool(view.assignable.any()):
-                key = 1_000 * s + t
-                q_c = _critic_value(policy, view, decision.candidates)
-                q.append(q_c)
-                returns.append(_branch_returns(model, env, action, branches, _horizon(gamma), key=key))
-                free.append(float(view.assignable.sum()))
-                # The alternative draws from its own seeded stream: the figures above stay those of the stream alone.
-                with th.random.fork_rng(devices=cuda):
-                    th.manual_seed(key)
-                    other = policy.decide(view, deterministic=False)
-                    if not th.equal(other.candidates, decision.candidates):
-                        alt = _branch_returns(model, env, other.env_action[0].cpu().numpy(), branches, _horizon(gamma), key)
-                        gaps.append(q_c - _critic_value(policy, view, other.candidates))
-                        gap_returns.append(returns[-1] - alt)
-            obs, _, terminated, truncated, _ = env.step(action)
-            if terminated or truncated:
-                break
-    if len(q) < 2:
-        return {**out, "branch_states": len(q)}
-    figures = calibration_figures(np.asarray(q), np.stack(returns), np.asarray(free))
-    if len(gaps) >= 2:
-        figures.update(advantage_figures(np.asarray(gaps), np.stack(gap_returns)))
-    else:
-        figures.update(advantage_pairs=len(gaps), advantage_corr=nan, advantage_ceiling=nan, advantage_sign=nan)
-    return figures
-
-
-def _critic_value(policy: Any, view: ObsView, candidates: th.Tensor) -> float:
-    """Q(s, c) = min_k AMIX^k of one state and its candidate sets (1, M, N)."""
-    return float(th.stack(policy.critic(view, candidates.transpose(1, 2).float()), 0).min(0).values.item())
-
-
-def advantage_figures(gaps: np.ndarray, differences: np.ndarray) -> dict[str, Any]:
-    """The critic's preference between two decisions of a state against the returns they lead to.
-
-    With the branches of both decisions paired by their env seeds, d_k = G_k(c) − G_k(c′) = Δμ + ε_k. The paired means
-    d̄ estimate Δμ = E[G|s,c] − E[G|s,c′] with noise Var(ε)/K, so a critic whose ΔQ equals Δμ correlates with d̄ by
-    sqrt(Var Δμ / Var d̄): the ceiling of corr(ΔQ, ΔḠ). Same sign: the share of pairs whose ΔQ and d̄ agree in sign,
-    i.e. where the critic prefers the decision whose branches did better.
-
-    :param gaps: (P,) Q(s, c) − Q(s, c′) of the decision pairs
-    :param differences: (P, K) the paired branch returns G_k(c) − G_k(c′)
-    """
-    if differences.ndim != 2 or differences.shape[1] < 2 or len(gaps) != len(differences):
-        raise ValueError(f"need (P,) gaps and (P, K >= 2) paired differences, got {gaps.shape} and {differences.shape}")
-    mean = differences.mean(1)
-    noise = float(differences.var(1, ddof=1).mean()) / differences.shape[1]  # Var of a pair's mean around Δμ
-    total = float(mean.var(ddof=1))
-    return dict(
-        advantage_pairs=len(gaps),
-        advantage_corr=_corr(gaps, mean),
-        advantage_ceiling=math.sqrt(max(total - noise, 0.0) / total) if total > 0 else float("nan"),
-        advantage_sign=float(np.mean(np.sign(gaps) == np.sign(mean))),
-    )
-
-
-def calibration_figures(q: np.ndarray, returns: np.ndarray, free: np.ndarray) -> dict[str, Any]:
-    """The figures of :func:`branch_calibration` from its measurements.
-
-    With G = μ(s, c) + ε, the branch means Ḡ estimate μ; E Var(ε) is the mean within-state variance s² of the branches,
-    and Var μ = Var Ḡ − s²/K (the means keep 1/K of the noise). A critic equal to μ correlates with one rollout's G by
-    sqrt(Var μ / (Var μ + E Var ε)): the ceiling.
-
-    :param q: (S,) Q(s, c) of the branched states
-    :param returns: (S, K) the branches' discounted returns
-    :param free: (S,) the number of free entities of each state
-    """
-    if returns.ndim != 2 or returns.shape[1] < 2 or len(q) != len(returns) or len(free) != len(returns):
-        raise ValueError(f"need (S,) values and (S, K >= 2) returns, got {q.shape}, {returns.shape}, {free.shape}")
-    mean = returns.mean(1)
-    noise = float(returns.var(1, ddof=1).mean())  # E Var(G | s, c)
-    signal = max(float(mean.var(ddof=1)) - noise / returns.shape[1], 0.0)  # Var E[G | s, c]
-    return dict(
-        branch_states=len(q),
-        q_corr_expected=_corr(q, mean),
-        q_scale_expected=float(q @ mean / max(mean @ mean, 1e-12)),
-        return_ceiling=math.sqrt(signal / (signal + noise)) if signal + noise > 0 else float("nan"),
-        free_corr_q=_corr(q, free),
-        free_corr_expected=_corr(mean, free),
-    )
-
-
 @th.no_grad()
 def diagnose(
     model: Any, env_id: str, episodes: int = 3, seed: int = 10_000, branches: int = 8, branch_stride: int = 10
@@ -397,7 +218,7 @@ def diagnose(
     policy, gamma = model.policy, float(model.gamma)
     alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())
     env = gym.make(env_id)
-    long_env, limit = _long_env(env_id, gamma)
+    long_env, limit = unlimited_env(env_id, gamma)
     cuda = [model.device.index or 0] if model.device.type == "cuda" else []
     with th.random.fork_rng(devices=cuda):  # the sampled decisions are reproducible and leave the caller's stream alone
         th.manual_seed(seed)
@@ -414,39 +235,7 @@ def diagnose(
     learned = "commitment" if timing == "commitment" else "rewards"  # the reward the stage-1 critic learns
     rewards = np.concatenate([e[learned][within] for e in sampled])
     if policy.actor is not None and policy.critic is not None:
-        q, g, g_soft, bonus, kl, changed = [], [], [], [], [], []
-        for e in sampled:
-            view = policy.parse(_stack(e["obs"], model.device))
-            dist = policy.actor(view)
-            per_entity = getattr(model, "entropy_bonus", "sum") == "mean"
-            entropy = state_entropy(dist, view, per_entity).cpu().numpy()  # the bonus's H(s_t) for t = 0..T
-            bonus_t = gamma * alpha * entropy[1:] * (1 - np.r_[np.zeros(len(e["rewards"]) - 1), float(e["terminated"])])
-            bonus.append(bonus_t[within])
-            g.append(_discounted(e[learned], gamma)[within])
-            g_soft.append(_discounted(e[learned] + bonus_t, gamma)[within])
-            n = len(g[-1])
-            states = ObsView(*(x[:n] for x in view))  # the states decided in within the limit
-            assign = th.as_tensor(np.stack(e["candidates"][:n]), device=model.device).transpose(1, 2).float()
-            q.append(th.stack(policy.critic(states, assign), 0).min(0).values.cpu().numpy())
-            if policy.actor_prior is not None:
-                now, prior = policy.actor(states), policy.actor_prior(states)
-                free = states.assignable
-                kl.append(now.kl(prior)[free].cpu().numpy())
-                changed.append((now.get_actions(True) != prior.get_actions(True))[free].cpu().numpy())
-        qa, ga, gsa = np.concatenate(q), np.concatenate(g), np.concatenate(g_soft)
-        figures.update(
-            q_mean=float(qa.mean()),
-            mc_return_mean=float(ga.mean()),
-            q_corr=_corr(qa, ga),
-            q_scale=float(qa @ ga / max(ga @ ga, 1e-12)),
-            soft_return_mean=float(gsa.mean()),
-            q_corr_soft=_corr(qa, gsa),
-            entropy_bonus_mean=float(np.concatenate(bonus).mean()),
-        )
-        if kl:
-            figures.update(
-                kl_per_entity=float(np.concatenate(kl).mean()), argmax_changed=float(np.concatenate(changed).mean())
-            )
+        figures.update(critic_figures(model, sampled, within, learned, alpha))
     stages = {k: float(np.mean(v)) for k, v in stage_returns(model, env_id, [seed + k for k in range(episodes)]).items()}
     decisions = [d for e in deterministic for d in zip(e["obs"][:-1], e["candidates"], e["kept"], strict=True)]
     counts = np.sum([task_outcomes(*d) for d in decisions], axis=0) if decisions else np.zeros(4)

@@ -262,8 +262,7 @@ class LearnRun:
         return model, {k: done[k] for k in kept if k in done}, curve
 
     def baselines(self, seed: int) -> dict[str, list[float]]:
-        """Greedy, the per-step MILP and the planners on seed ``seed``'s evaluation episodes (:func:`.evaluation.
-        baseline_returns`, computed once per seed and shared by every run of the algorithm's settings)."""
+        """Greedy, the per-step MILP and the planners on seed ``seed``'s episodes (:func:`.evaluation.baseline_returns`)."""
         return evaluation.baseline_returns(self, seed)
 
     def run(self, progress: bool = True, jobs: int = 1) -> Path:
