@@ -50,11 +50,25 @@ def check_finite(values: dict[str, Any], minimum: float = 0.0, inclusive: bool =
     :param minimum: the bound
     :param inclusive: whether ``minimum`` itself is allowed
     """
-    what = f"a finite number {'>=' if inclusive else '>'} {minimum:g}"
+    what = "a finite number" + ("" if minimum == -math.inf else f" {'>=' if inclusive else '>'} {minimum:g}")
     for name, value in values.items():
         number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
         if not (number and (value >= minimum if inclusive else value > minimum)):
             raise ValueError(f"{name} must be {what}, got {value!r}")
+
+
+def settings_over(name: str, given: Any, defaults: dict[str, Any]) -> dict[str, Any]:
+    """The settings mapping ``given`` (None: none) over ``defaults``, with a clear error for anything but a mapping of
+    known keys (a ``*_kwargs`` argument: ``select_kwargs``, ``mixer_kwargs``).
+
+    :param name: the argument's name, for the error message
+    """
+    if not isinstance(given, dict | None):
+        raise ValueError(f"{name} must be a mapping of {sorted(defaults)}, got {given!r}")
+    unknown = sorted(set(given or {}) - set(defaults))
+    if unknown:
+        raise ValueError(f"{name}: unknown settings {unknown}; choose from {sorted(defaults)}")
+    return {**defaults, **(given or {})}
 
 
 def cuda_unavailable(device: str) -> str | None:

@@ -9,12 +9,19 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, yaml_mapping
 
-def main(argv: list[str] | None = None) -> None:
-    from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, yaml_mapping
 
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of every experiment."""
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.experiments", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_table, _add_almighty, _add_diagnose, _add_learn):
+        add(sub)
+    return parser
+
+
+def _add_table(sub: Any) -> None:
     table = sub.add_parser("table", help="results table of one env (resumes from results/<env>/)")
     table.add_argument("--env", required=True, choices=ENVS)
     table.add_argument("--seeds", type=int, default=5)
@@ -24,11 +31,17 @@ def main(argv: list[str] | None = None) -> None:
         "--methods", nargs="+", default=None, choices=list(METHODS), metavar="METHOD", help=f"subset of {list(METHODS)}"
     )
     table.add_argument("--fresh", action="store_true", help="discard the env's previous cells and models")
+
+
+def _add_almighty(sub: Any) -> None:
     fig = sub.add_parser("almighty", help="return vs steps on Almighty: pre-assign, sequence, random (the paper's figure)")
     fig.add_argument("--seeds", type=int, default=5)
     fig.add_argument("--steps", type=int, default=1200)
     fig.add_argument("--every", type=int, default=50)
     fig.add_argument("--out", default="results/almighty")
+
+
+def _add_diagnose(sub: Any) -> None:
     diag = sub.add_parser(
         "diagnose", help="critic calibration, entropy bonus, KL to the initial rule, sampled vs argmax return"
     )
@@ -43,6 +56,9 @@ def main(argv: list[str] | None = None) -> None:
     diag.add_argument(
         "--algo-kwargs", type=yaml_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"'
     )
+
+
+def _add_learn(sub: Any) -> None:
     learn = sub.add_parser("learn", help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)")
     learn.add_argument("--env", required=True, choices=ENVS)
     learn.add_argument("--seeds", type=int, default=5)
@@ -99,6 +115,10 @@ def main(argv: list[str] | None = None) -> None:
         help="then evaluate the trained and untrained models and Greedy on N further held-out episodes per seed, and "
         "count the seeds above Greedy over all of them",
     )  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     import torch as th
@@ -106,17 +126,17 @@ def main(argv: list[str] | None = None) -> None:
     import envs  # noqa: F401  (registers the TaskAlloc ids)
 
     th.set_num_threads(1)
-    if args.command == "learn":
-        _learn(parser, args)
-        return
-    if args.command == "diagnose":
-        _diagnose(parser, args)
-        return
-    if args.command == "almighty":
-        from sb3_taskalloc.experiments.almighty import almighty_figure
+    commands = {"learn": _learn, "diagnose": _diagnose, "almighty": _almighty, "table": _table}
+    commands[args.command](parser, args)
 
-        print(f"wrote {almighty_figure(args.seeds, args.steps, args.every, args.out)}")
-        return
+
+def _almighty(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    from sb3_taskalloc.experiments.almighty import almighty_figure
+
+    print(f"wrote {almighty_figure(args.seeds, args.steps, args.every, args.out)}")
+
+
+def _table(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if args.seeds < 1:
         parser.error(f"--seeds must be >= 1, got {args.seeds}")
     from sb3_taskalloc.experiments.table import TableRun

@@ -8,9 +8,10 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.demo", description=__doc__)
     parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="environment id")
     parser.add_argument("--steps", type=int, default=4000, help="training env steps (all envs together)")
@@ -20,21 +21,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
     parser.add_argument("--out", default="demo_out")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
 
-    import gymnasium as gym
-    import numpy as np
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
     from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.evaluation import evaluate_policy
 
     import envs  # registers the TaskAlloc ids
-    from envs.rendering import save_gif
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.baselines import GreedyAllocator, RandomAllocator
     from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
-    from sb3_taskalloc.experiments.plots import plot_learning_curve
 
     th.set_num_threads(args.threads)
     out = Path(args.out)
@@ -78,7 +76,22 @@ def main(argv: list[str] | None = None) -> None:
     model.learn(args.steps, callback=[episodes, evaluation], progress_bar=True)
     train_s = time.time() - t0
     model.save(out / "two_stage_sac")
+    report(args, model, train_s, episodes.ends, evaluation)
 
+
+def report(args: argparse.Namespace, model: Any, train_s: float, ends_: list[tuple[int, float]], evaluation: Any) -> None:
+    """Evaluate the trained model beside Greedy and Random on the same held-out episodes; write the curve, the GIF of
+    one episode and ``results.json``."""
+    import gymnasium as gym
+    import numpy as np
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from envs.rendering import save_gif
+    from sb3_taskalloc.baselines import GreedyAllocator, RandomAllocator
+    from sb3_taskalloc.experiments.plots import plot_learning_curve
+
+    out = Path(args.out)
     results = {}
     for name, agent in (("TwoStageSAC", model), ("Greedy", GreedyAllocator()), ("Random", RandomAllocator(args.seed))):
         eval_env = make_vec_env(args.env, n_envs=1, seed=10_000 + args.seed)  # same evaluation episodes for every agent
@@ -89,8 +102,8 @@ def main(argv: list[str] | None = None) -> None:
     for name, (mean, std) in results.items():
         print(f"  {name:12s} {mean:9.2f} ± {std:.2f}")
 
-    ends = np.array([t for t, _ in episodes.ends], dtype=float)
-    returns = np.array([r for _, r in episodes.ends], dtype=float)
+    ends = np.array([t for t, _ in ends_], dtype=float)
+    returns = np.array([r for _, r in ends_], dtype=float)
     png = plot_learning_curve(
         {"TwoStageSAC, sampled (training episodes)": (ends, returns)},
         out / "learning_curve.png",

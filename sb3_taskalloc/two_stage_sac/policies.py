@@ -24,7 +24,7 @@ from sb3_taskalloc.common.torch_layers import (
     PointerHead,
     parse_obs,
 )
-from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite
+from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite, settings_over
 from sb3_taskalloc.two_stage_sac.components import ENCODERS, MIXERS
 from sb3_taskalloc.two_stage_sac.decoding import (
     SAMPLED,
@@ -47,6 +47,21 @@ RULE_LOGIT_SCALES = (100.0, 10.0)
 
 #: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
 MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
+
+
+def check_rule_weights(rule_weights: dict[str, float] | None, heuristic_init: bool) -> dict[str, float]:
+    """``rule_weights`` as a dict, with a clear error for an unknown pair feature, a weight that is no finite number,
+    or weights without ``heuristic_init`` (whose rule they set)."""
+    weights = dict(rule_weights or {})
+    if not weights:
+        return weights
+    unknown = sorted(set(weights) - set(PAIR_FEATURE_NAMES))
+    if unknown:
+        raise ValueError(f"rule_weights: unknown pair features {unknown}; choose from {list(PAIR_FEATURE_NAMES)}")
+    if not heuristic_init:
+        raise ValueError("rule_weights set the initial rule of heuristic_init=True; got heuristic_init=False")
+    check_finite({f"rule_weights[{k!r}]": v for k, v in weights.items()}, minimum=-math.inf)
+    return weights
 
 
 def starts_at_rule(policy_kwargs: dict[str, Any]) -> bool:
@@ -143,21 +158,11 @@ class TAMPolicy(BasePolicy):
                 "every task decodes its own candidates in parallel, in no order"
             )
         task_order = task_order or "sequential"
-        check_choices(
-            {
-                "task_order": (task_order, ("sequential", "random")),
-                "encoder": (encoder, tuple(ENCODERS)),
-                "mixer": (mixer, tuple(MIXERS)),
-            }
-        )
+        choices = {"task_order": (task_order, ("sequential", "random")), "encoder": (encoder, tuple(ENCODERS))}
+        check_choices({**choices, "mixer": (mixer, tuple(MIXERS))})
         check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds))
         check_bools(dict(pair_features=pair_features, preassign=preassign, heuristic_init=heuristic_init))
-        if not isinstance(mixer_kwargs, dict | None):
-            raise ValueError(f"mixer_kwargs must be a mapping of {sorted(MIXER_DEFAULTS)}, got {mixer_kwargs!r}")
-        unknown = sorted(set(mixer_kwargs or {}) - set(MIXER_DEFAULTS))
-        if unknown:
-            raise ValueError(f"mixer_kwargs: unknown settings {unknown}; choose from {sorted(MIXER_DEFAULTS)}")
-        self.mixer_kwargs = {**MIXER_DEFAULTS, **(mixer_kwargs or {})}
+        self.mixer_kwargs = settings_over("mixer_kwargs", mixer_kwargs, MIXER_DEFAULTS)
         check_bools({f"mixer_kwargs[{k!r}]": v for k, v in self.mixer_kwargs.items()})
         self.hidden_dim = hidden_dim
         self.n_attention_layers = n_attention_layers
@@ -182,16 +187,7 @@ class TAMPolicy(BasePolicy):
         #: How deterministic decisions are decoded (:mod:`.decoding`); not saved among the constructor parameters.
         self.decoder: Decoder = get_decoding_strategy("argmax")
         self.heuristic_init = heuristic_init
-        self.rule_weights = dict(rule_weights or {})
-        if self.rule_weights:
-            unknown = sorted(set(self.rule_weights) - set(PAIR_FEATURE_NAMES))
-            if unknown:
-                raise ValueError(f"rule_weights: unknown pair features {unknown}; choose from {list(PAIR_FEATURE_NAMES)}")
-            if not heuristic_init:
-                raise ValueError("rule_weights set the initial rule of heuristic_init=True; got heuristic_init=False")
-            bad = {k: v for k, v in self.rule_weights.items() if not (isinstance(v, int | float) and math.isfinite(v))}
-            if bad:
-                raise ValueError(f"rule_weights must be finite numbers, got {bad}")
+        self.rule_weights = check_rule_weights(rule_weights, heuristic_init)
         self.activation_fn = activation_fn
         self._build(lr_schedule)
 

@@ -57,6 +57,14 @@ PAPER_KWARGS: dict[str, Any] = {
 }
 
 
+#: The allowed values of TwoStageSAC's choices.
+CHOICES: dict[str, tuple[str, ...]] = {
+    "reward_timing": ("completion", "commitment"),
+    "entropy_bonus": ("sum", "mean"),
+    "warmup_exploration": ("uniform", "policy"),
+}
+
+
 class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     """Two-stage discrete soft actor-critic (paper: "A Two-stage Reinforcement Learning-based Approach for
     Multi-entity Task Allocation"), for the ``TaskAlloc`` environments.
@@ -170,13 +178,8 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         )
         legacy.check_policy_kwargs(self.policy_class, self.policy_kwargs)
         check_counts({"batch_size": batch_size, "target_update_interval": target_update_interval, "n_steps": n_steps})
-        check_choices(
-            {
-                "reward_timing": (reward_timing, ("completion", "commitment")),
-                "entropy_bonus": (entropy_bonus, ("sum", "mean")),
-                "warmup_exploration": (warmup_exploration, ("uniform", "policy")),
-            }
-        )
+        given = {"reward_timing": reward_timing, "entropy_bonus": entropy_bonus, "warmup_exploration": warmup_exploration}
+        check_choices({name: (value, CHOICES[name]) for name, value in given.items()})
         check_bools({"train_preassign_actor": train_preassign_actor})
         check_finite({"prior_coef": prior_coef}, inclusive=True)
         self.n_steps = n_steps

@@ -18,7 +18,7 @@ import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
 from sb3_taskalloc.common.policies import CriticContext
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.common.utils import check_counts, check_finite, foreach_polyak_update
+from sb3_taskalloc.common.utils import check_counts, check_finite, foreach_polyak_update, settings_over
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
@@ -41,12 +41,7 @@ SELECT_DEFAULTS: dict[str, Any] = {
 
 def check_select_kwargs(select_kwargs: dict[str, Any] | None) -> dict[str, Any]:
     """The select stage's settings over :data:`SELECT_DEFAULTS`, with a clear error for an unknown or bad one."""
-    if not isinstance(select_kwargs, dict | None):
-        raise ValueError(f"select_kwargs must be a mapping of {sorted(SELECT_DEFAULTS)}, got {select_kwargs!r}")
-    unknown = sorted(set(select_kwargs or {}) - set(SELECT_DEFAULTS))
-    if unknown:
-        raise ValueError(f"select_kwargs: unknown settings {unknown}; choose from {sorted(SELECT_DEFAULTS)}")
-    settings = {**SELECT_DEFAULTS, **(select_kwargs or {})}
+    settings = settings_over("select_kwargs", select_kwargs, SELECT_DEFAULTS)
     check_counts({f"select_kwargs[{k!r}]": settings[k] for k in ("batch_size", "search_samples")})
     check_finite({f"select_kwargs[{k!r}]": settings[k] for k in ("prior_coef", "search_coef")}, inclusive=True)
     check_finite({"select_kwargs['search_temperature']": settings["search_temperature"]})
