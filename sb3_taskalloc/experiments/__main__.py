@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import envs  # registers the TaskAlloc ids
 from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, yaml_mapping
 
 
@@ -123,8 +124,6 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch as th
 
-    import envs  # noqa: F401  (registers the TaskAlloc ids)
-
     th.set_num_threads(1)
     commands = {"learn": _learn, "diagnose": _diagnose, "almighty": _almighty, "table": _table}
     commands[args.command](parser, args)
@@ -150,38 +149,43 @@ def _table(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     print(f"wrote {path}, {path.with_suffix('.csv')}")
 
 
-def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+def _check_learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[str, ...]:
+    """Refuse bad ``learn`` arguments before any training; :return: the planners to run."""
+    from sb3_taskalloc.common.utils import cuda_unavailable
     from sb3_taskalloc.experiments.evaluation import PLANNERS
-    from sb3_taskalloc.experiments.learn import LearnRun
+    from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
 
     if min(args.seeds, args.eval_episodes, args.eval_every, args.jobs) < 1:
         parser.error("--seeds, --eval-episodes, --eval-every and --jobs must be >= 1")
-    if args.select_dagger is not None and args.select_dagger < 0:
-        parser.error(f"--select-dagger must be >= 0, got {args.select_dagger}")
-    if args.first_seed < 0:
-        parser.error(f"--first-seed must be >= 0, got {args.first_seed}")
-    from sb3_taskalloc.common.utils import cuda_unavailable
-
+    if min(args.select_dagger or 0, args.first_seed, args.validation_episodes) < 0:
+        parser.error("--select-dagger, --first-seed and --validation-episodes must be >= 0")
     if why := cuda_unavailable(args.device):
         parser.error(why)
-    if args.validation_episodes < 0:
-        parser.error(f"--validation-episodes must be >= 0, got {args.validation_episodes}")
+    if args.zero_shot and f"TaskAlloc/{args.zero_shot}-v0" not in envs.ENV_SPECS:
+        parser.error(
+            f"--zero-shot: unknown env {args.zero_shot!r}; choose from {sorted(envs.ENV_SPECS)} without TaskAlloc/ and -v0"
+        )
     planners = PLANNERS if args.planners is None else tuple(p for p in args.planners if p != "none")
     unknown = set(planners) - set(PLANNERS)
     if unknown:
         parser.error(f"unknown planners {sorted(unknown)}; choose from {list(PLANNERS)} or none")
+    try:
+        get_decoding_strategy(args.decoder, **args.decoder_kwargs)
+    except ValueError as error:
+        parser.error(f"--decoder: {error}")
+    return planners
+
+
+def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    from sb3_taskalloc.experiments.learn import LearnRun
+
+    planners = _check_learn(parser, args)
     run = LearnRun(args.env, args.seeds, args.steps, args.eval_episodes, args.eval_every, args.algo_kwargs, planners,
                    out=args.out, validation_episodes=args.validation_episodes,
                    select_dagger=args.select_dagger, dagger_imitation=args.dagger_imitation,
                    first_seed=args.first_seed, device=args.device)  # fmt: skip
     if args.steps < (0 if run.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
         parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
-    from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
-
-    try:  # before any training
-        get_decoding_strategy(args.decoder, **args.decoder_kwargs)
-    except ValueError as error:
-        parser.error(f"--decoder: {error}")
     try:  # before any training
         run.check_more_episodes(args.more_episodes)
     except ValueError as error:

@@ -101,12 +101,17 @@ def reevaluate(
         rows.append(row)
     settings = {"settings": run.describe(), "env": env_id, "decoder": repr(strategy), "seeds": rows}
     atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
-    columns = ["untrained", "trained", "Greedy", *([] if shift or more_episodes else ["MILP"])]
+    title = f"# {env_id}: {how}, the models of `{run.env}.md` ({run.steps:,} steps on {run.env_id})"
+    lines = [title, "", f"Command: `{run.command()}{flags}`", *report_lines(rows, with_milp=not (shift or more_episodes))]
+    lines += over_all_episodes(run, rows) if more_episodes else []
+    return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+
+
+def report_lines(rows: list[dict[str, Any]], with_milp: bool) -> list[str]:
+    """The re-evaluation's table (per seed, mean ± std) and its comparisons, as Markdown lines."""
+    columns = ["untrained", "trained", "Greedy", *(["MILP"] if with_milp else [])]
     means = {c: np.array([np.mean(r[c]) for r in rows]) for c in columns}
     lines = [
-        f"# {env_id}: {how}, the models of `{run.env}.md` ({run.steps:,} steps on {run.env_id})",
-        "",
-        f"Command: `{run.command()}{flags}`",
         "",
         "| seed | " + " | ".join(columns) + " |",
         "|---" * (len(columns) + 1) + "|",
@@ -116,14 +121,10 @@ def reevaluate(
         f"- trained ≥ Greedy: {int((means['trained'] >= means['Greedy']).sum())} of {len(rows)} seeds (target all)",
         f"- trained > untrained: {int((means['trained'] > means['untrained']).sum())} of {len(rows)} seeds, "
         f"{means['trained'].mean() / means['untrained'].mean():.3f} × (means)",
-        *(
-            []
-            if shift or more_episodes
-            else [f"- trained / per-step MILP (means): {means['trained'].mean() / means['MILP'].mean():.3f}"]
-        ),
-        *(over_all_episodes(run, rows) if more_episodes else []),
     ]
-    return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+    if with_milp:
+        lines.append(f"- trained / per-step MILP (means): {means['trained'].mean() / means['MILP'].mean():.3f}")
+    return lines
 
 
 def check_more_episodes(run: LearnRun, more_episodes: int) -> None:

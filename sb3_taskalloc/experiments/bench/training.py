@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sb3_taskalloc.experiments.evaluation import Curve
+
 if TYPE_CHECKING:
     from sb3_taskalloc import TwoStageSAC
 
@@ -19,6 +21,59 @@ LAUNCH_EVENTS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "c
 
 #: ``bench learn`` trains until the policy returns this multiple of its untrained initialisation.
 LEARN_TARGET = 1.05
+
+
+def measure_training(
+    model: TwoStageSAC, device: str, steps: int, blocks: int, env: str, target: int | None = None
+) -> dict[str, Any]:
+    """One row: env steps/s of ``learn`` (the median of ``blocks`` runs of ``steps`` steps), then the gradient step
+    and the stochastic decision timed apart (medians over single steps)."""
+    model.learn(64)
+    rates = []
+    for _ in range(blocks):
+        t0 = time.perf_counter()
+        model.learn(steps, reset_num_timesteps=False)
+        rates.append(steps / (time.perf_counter() - t0))
+    rate = float(np.median(rates))
+    reps = max(steps // 5, 4)
+
+    def gradient_step() -> None:
+        model.train(gradient_steps=1, batch_size=64)
+        sync(device)
+
+    def decision() -> None:
+        model._sample_action(learning_starts=0)
+        sync(device)
+
+    grad_ms = median_ms(gradient_step, reps, warmup=1)  # the warm-up step also waits for learn()'s queued work
+    decision_ms = median_ms(decision, reps, warmup=1)
+    amix_ms = _amix_ms(model, device, reps)
+    kernel_ms = launches = None
+    if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            model.train(gradient_steps=reps, batch_size=64)
+            sync(device)
+        events = prof.key_averages()
+        kernel_ms = sum(e.self_device_time_total for e in events if e.device_type.name == "CUDA") / reps / 1e3
+        launches = sum(e.count for e in events if e.key in LAUNCH_EVENTS) / reps
+    return {
+        "device": device,
+        "env": env,
+        "env_steps_per_s": rate,
+        "env_steps_per_s_blocks": [round(r, 2) for r in rates],
+        "minutes_to_100k_steps": 1e5 / rate / 60,  # extrapolated from the rate, for RBF's paper budget
+        "gradient_step_ms": grad_ms,
+        "gpu_kernel_ms_per_gradient_step": kernel_ms,
+        "kernel_launches_per_gradient_step": launches,
+        "decision_ms": decision_ms,
+        "amix_ms_per_gradient_step": amix_ms,
+        # What the decision and AMIX's attention alone would allow, with everything else in a step free.
+        "env_steps_per_s_bound": 1e3 / (decision_ms + amix_ms),
+        "replay_GB_for_100k": model.replay_buffer.nbytes_per_transition() * 100_000 / 1e9,
+        "target_steps_per_s": target,
+    }
 
 
 def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -34,56 +89,6 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
 
-    def measure(model: TwoStageSAC, device: str, steps: int, env: str, target: int | None = None) -> dict[str, Any]:
-        """One row: env steps/s of ``learn`` (the median of ``blocks`` runs of ``steps`` steps), then the gradient step
-        and the stochastic decision timed apart (medians over single steps)."""
-        model.learn(64)
-        rates = []
-        for _ in range(blocks):
-            t0 = time.perf_counter()
-            model.learn(steps, reset_num_timesteps=False)
-            rates.append(steps / (time.perf_counter() - t0))
-        rate = float(np.median(rates))
-        reps = max(steps // 5, 4)
-
-        def gradient_step() -> None:
-            model.train(gradient_steps=1, batch_size=64)
-            sync(device)
-
-        def decision() -> None:
-            model._sample_action(learning_starts=0)
-            sync(device)
-
-        grad_ms = median_ms(gradient_step, reps, warmup=1)  # the warm-up step also waits for learn()'s queued work
-        decision_ms = median_ms(decision, reps, warmup=1)
-        amix_ms = _amix_ms(model, device, reps)
-        kernel_ms = launches = None
-        if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
-            from torch.profiler import ProfilerActivity, profile
-
-            with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-                model.train(gradient_steps=reps, batch_size=64)
-                sync(device)
-            events = prof.key_averages()
-            kernel_ms = sum(e.self_device_time_total for e in events if e.device_type.name == "CUDA") / reps / 1e3
-            launches = sum(e.count for e in events if e.key in LAUNCH_EVENTS) / reps
-        return {
-            "device": device,
-            "env": env,
-            "env_steps_per_s": rate,
-            "env_steps_per_s_blocks": [round(r, 2) for r in rates],
-            "minutes_to_100k_steps": 1e5 / rate / 60,  # extrapolated from the rate, for RBF's paper budget
-            "gradient_step_ms": grad_ms,
-            "gpu_kernel_ms_per_gradient_step": kernel_ms,
-            "kernel_launches_per_gradient_step": launches,
-            "decision_ms": decision_ms,
-            "amix_ms_per_gradient_step": amix_ms,
-            # What the decision and AMIX's attention alone would allow, with everything else in a step free.
-            "env_steps_per_s_bound": 1e3 / (decision_ms + amix_ms),
-            "replay_GB_for_100k": model.replay_buffer.nbytes_per_transition() * 100_000 / 1e9,
-            "target_steps_per_s": target,
-        }
-
     devices = bench_devices(args)
     rows = []
     steps = 20 if args.quick else 100
@@ -93,17 +98,54 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             if args.quick and env_id != "TaskAlloc/RBF-v0":
                 continue
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
-            rows.append(measure(model, device, steps, env_id, 60 if env_id == "TaskAlloc/RBF-v0" else None))
+            rows.append(measure_training(model, device, steps, blocks, env_id, 60 if env_id == "TaskAlloc/RBF-v0" else None))
             if env_id == "TaskAlloc/RBF-v0":  # vectorised collection: one batched decision for n_envs envs
                 for n_envs in () if args.quick else (8,):
                     vec = make_vec_env(env_id, n_envs=n_envs, seed=0)
                     model = TwoStageSAC("TAMPolicy", vec, learning_starts=64, batch_size=64, seed=0, device=device)
-                    rows.append(measure(model, device, steps * n_envs // 2, f"{env_id}, n_envs={n_envs}", 60))
+                    rows.append(measure_training(model, device, steps * n_envs // 2, blocks, f"{env_id}, n_envs={n_envs}", 60))
         for n in () if args.quick else (10, 25, 50):
             env = gym.make("TaskAlloc/RBF-v0", entity_rows=tuple(range(n)))  # RBF-v0 with its first n entities
             model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
-            rows.append(measure(model, device, steps // 2, f"RBF-v0, first {n} entities"))
+            rows.append(measure_training(model, device, steps // 2, blocks, f"RBF-v0, first {n} entities"))
     return rows
+
+
+class ToTarget(Curve):
+    """The learning experiment's curve, timed: each evaluation (on passing a multiple of ``every`` env steps) runs
+    with the training clock stopped (after the device's queued work), and training stops at the target. No
+    evaluation at step 0: the untrained return is measured before."""
+
+    def __init__(self, env_id: str, seeds: list[int], every: int, target: float) -> None:
+        super().__init__(env_id, seeds, every)
+        self.target, self.seconds, self.clock = target, 0.0, 0.0
+        self.timed: list[tuple[int, float, float]] = []  # (env steps, training seconds, return), rounded
+
+    @property
+    def last(self) -> float:
+        return self.points[-1][1]
+
+    @property
+    def reached(self) -> bool:
+        return bool(self.points) and self.last >= self.target
+
+    def _on_training_start(self) -> None:
+        self.clock = time.perf_counter()
+
+    def _evaluate(self) -> None:
+        sync(self.model.device.type)
+        self.seconds += time.perf_counter() - self.clock
+        super()._evaluate()
+        self.timed.append((self.num_timesteps, round(self.seconds, 2), round(self.last, 2)))
+        self.clock = time.perf_counter()
+
+    def _on_step(self) -> bool:
+        super()._on_step()
+        return not self.reached
+
+    def _on_training_end(self) -> None:  # the budget ran out between two evaluations: evaluate where it stopped
+        if not self.points or self.points[-1][0] < self.num_timesteps:
+            self._evaluate()
 
 
 def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -114,48 +156,12 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.budgets import over_zoo, training_env
-    from sb3_taskalloc.experiments.evaluation import Curve, episode_returns, eval_seeds
+    from sb3_taskalloc.experiments.evaluation import episode_returns, eval_seeds
 
     env_id = "TaskAlloc/RBF-v0"
     budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
     if budget < 1 or every < 1:
         raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
-
-    class ToTarget(Curve):
-        """The learning experiment's curve, timed: each evaluation (on passing a multiple of ``every`` env steps) runs
-        with the training clock stopped (after the device's queued work), and training stops at the target. No
-        evaluation at step 0: the untrained return is measured before."""
-
-        def __init__(self, seeds: list[int], target: float) -> None:
-            super().__init__(env_id, seeds, every)
-            self.target, self.seconds, self.clock = target, 0.0, 0.0
-            self.timed: list[tuple[int, float, float]] = []  # (env steps, training seconds, return), rounded
-
-        @property
-        def last(self) -> float:
-            return self.points[-1][1]
-
-        @property
-        def reached(self) -> bool:
-            return bool(self.points) and self.last >= self.target
-
-        def _on_training_start(self) -> None:
-            self.clock = time.perf_counter()
-
-        def _evaluate(self) -> None:
-            sync(self.model.device.type)
-            self.seconds += time.perf_counter() - self.clock
-            super()._evaluate()
-            self.timed.append((self.num_timesteps, round(self.seconds, 2), round(self.last, 2)))
-            self.clock = time.perf_counter()
-
-        def _on_step(self) -> bool:
-            super()._on_step()
-            return not self.reached
-
-        def _on_training_end(self) -> None:  # the budget ran out between two evaluations: evaluate where it stopped
-            if not self.points or self.points[-1][0] < self.num_timesteps:
-                self._evaluate()
 
     hyperparameters = over_zoo(env_id, args.algo_kwargs)
     rows = []
@@ -165,7 +171,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
             model = TwoStageSAC("TAMPolicy", env, seed=seed, device=device, **kwargs)
             seeds = eval_seeds(seed, episodes)
             untrained = float(np.mean(episode_returns(model, env_id, seeds)))
-            callback = ToTarget(seeds, LEARN_TARGET * untrained)
+            callback = ToTarget(env_id, seeds, every, LEARN_TARGET * untrained)
             model.learn(budget, callback=callback)
             steps, seconds, _ = callback.timed[-1]
             reached, value = callback.reached, callback.last

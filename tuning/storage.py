@@ -1,0 +1,95 @@
+"""Where an Optuna study lives (:mod:`tuning.study`): a journal file, made safe to append to after a crash, or an RDB
+URL with heartbeats."""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+
+import optuna
+from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock, JournalFileSymlinkLock
+
+
+def repair_journal(path: Path, lock: JournalFileSymlinkLock | JournalFileOpenLock) -> Path | None:
+    """Make a journal file safe to append to, under the journal's own lock (so no worker is writing meanwhile).
+
+    A last line without its newline is a record cut mid-write: it is moved to ``<path>.torn-<time>`` and cut off,
+    because Optuna would append the next record onto it and leave a file it cannot read. Any other line that is not a
+    JSON record (a damaged file, or not a journal at all) is refused with a clear error: nothing is written.
+
+    :return: the file holding the cut-off bytes, or None when the journal was whole
+    """
+    if not path.exists() or path.stat().st_size == 0:
+        return None
+    while not lock.acquire():
+        time.sleep(0.05)
+    try:
+        data = path.read_bytes()
+        cut = data.rfind(b"\n") + 1
+        whole, tail = data[:cut], data[cut:]
+        hint = " (an SQLite database: use sqlite:///PATH)" if data.startswith(b"SQLite format 3") else ""
+        lines = whole.splitlines()
+        if tail and not tail.startswith(b"{"):  # not the start of a record, so not a record cut mid-write
+            lines.append(tail)
+        for number, line in enumerate(lines, 1):
+            try:
+                json.loads(line)
+            except (UnicodeDecodeError, json.JSONDecodeError):
+                raise ValueError(
+                    f"{path} is not a readable Optuna journal{hint}: line {number} is not a JSON record; "
+                    "nothing was written to it"
+                ) from None
+        torn = None
+        if tail:  # a record cut mid-write: keep its bytes aside, then cut it off
+            torn = path.with_name(f"{path.name}.torn-{time.strftime('%Y%m%d-%H%M%S')}")
+            torn.write_bytes(tail)
+            with path.open("r+b") as f:
+                f.truncate(cut)
+        return torn
+    finally:
+        lock.release()
+
+
+def make_storage(
+    url: str | None, study_name: str, folder: str = "studies", heartbeat_interval: int = 30, grace_period: int = 120
+) -> optuna.storages.BaseStorage:
+    """The study's storage: a journal file (default ``<folder>/<study_name>.log``, or a path) repaired if its last
+    record was cut (:func:`repair_journal`), or an RDB URL (``postgresql://…``, ``sqlite:///…``) with heartbeats and
+    retries of failed trials.
+
+    :param url: ``None``, a journal file path, or an SQLAlchemy URL
+    :param study_name: study name (names the default journal file)
+    :param folder: folder of the default journal file
+    :param heartbeat_interval: seconds between heartbeats (RDB storage)
+    :param grace_period: seconds without a heartbeat after which a running trial counts as dead (RDB storage)
+    """
+    if url is None or "://" not in url:
+        path = journal_path(url, study_name, folder)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lock = JournalFileSymlinkLock(str(path))
+        torn = repair_journal(path, lock)
+        if torn is not None:
+            print(f"{path}: its last record was cut mid-write; moved it to {torn} and cut it off")
+        return optuna.storages.JournalStorage(JournalFileBackend(str(path), lock_obj=lock))
+    import sqlalchemy.exc
+
+    for attempt in range(5):
+        try:
+            with warnings.catch_warnings():  # heartbeats are an "experimental" argument of Optuna
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return optuna.storages.RDBStorage(
+                    url,
+                    heartbeat_interval=heartbeat_interval,
+                    grace_period=grace_period,
+                    heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=2),
+                )
+        except sqlalchemy.exc.IntegrityError:  # workers starting together race to create the schema: the loser retries
+            time.sleep(0.5 * (attempt + 1))
+    raise RuntimeError(f"could not open the study storage {url} (schema creation kept failing)")
+
+
+def journal_path(url: str | None, study_name: str, folder: str) -> Path:
+    """The journal file of a study: ``url`` when given, else ``<folder>/<study_name>.log``."""
+    return Path(url) if url else Path(folder) / f"{study_name}.log"
