@@ -125,7 +125,8 @@ def max_profit_cover(
 
 
 # Nodes of :func:`cheapest_team`'s search before :func:`max_profit_team` hands a task to HiGHS: on the DAgger labels of
-# trained RBF, MT and EPT models all tasks but about one in 600 finish within it (README, "Exact teams by branch and bound").
+# trained RBF, MT and EPT models all tasks but about one in 600 finish within it (docs/benchmarks.md, "Exact teams by
+# branch and bound").
 TEAM_NODE_LIMIT = 5000
 # The search recurses once per group of identical candidates; a task with more groups goes to HiGHS (Python's recursion
 # limit is 1,000 frames, and such a task is far past what the node limit lets the search finish).

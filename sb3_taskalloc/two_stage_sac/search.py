@@ -56,8 +56,8 @@ def select_search(
 
 
 # The exact searches stop by work, not by the clock, so that a decision or a label does not depend on the machine's speed
-# or load: a node limit under which HiGHS proves nearly every step cover optimal (README, "A deterministic stop for the
-# exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
+# or load: a node limit under which HiGHS proves nearly every step cover optimal (docs/learning.md, "A deterministic
+# stop for the exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
 EXACT_NODE_LIMIT = 1000
 EXACT_TIME_LIMIT = 30.0
 
