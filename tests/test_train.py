@@ -545,10 +545,6 @@ def test_n_step_returns_of_the_replay_buffer():
     th.testing.assert_close(data.discounts[:, 0], th.tensor([0.125, 0.25, 0.125, 0.25]))
     th.testing.assert_close(data.next_observations["task_reward"][:, 0], th.tensor([2.0, 2.0, 5.0, 5.0]))
     th.testing.assert_close(data.dones[:, 0], th.tensor([1.0, 1.0, 0.0, 0.0]))
-    single = buf._get_samples(np.array([0, 3]), env_indices=np.array([0, 0]), one_step=True)  # a pair's replayed row
-    assert single.discounts is None
-    th.testing.assert_close(single.rewards[:, 0], th.tensor([1.0, 4.0]))
-    th.testing.assert_close(single.next_observations["task_reward"][:, 0], th.tensor([0.0, 3.0]))
     one_step = TwoStageReplayBuffer(10, env.observation_space, env.action_space, device="cpu")
     one_step.add(marked, marked, decision, np.array([1.0]), np.array([False]), [{}])
     assert one_step._get_samples(np.array([0])).discounts is None

@@ -30,33 +30,6 @@ class TwoStageReplayBufferSamples(NamedTuple):
     discounts: th.Tensor | None = None  # (B, 1) γ^k of the bootstrap after k ≤ n steps (n-step returns), else None
 
 
-def concat_samples(
-    first: TwoStageReplayBufferSamples, second: TwoStageReplayBufferSamples, gamma: float
-) -> TwoStageReplayBufferSamples:
-    """The rows of ``first`` followed by those of ``second`` (the same spaces). Where one of them has no n-step
-    discounts (one-step transitions), its rows get γ, the discount of one step.
-
-    :param gamma: γ of the one-step rows
-    """
-
-    def cat(a: th.Tensor, b: th.Tensor) -> th.Tensor:
-        return th.cat([a, b], 0)
-
-    def discounts(samples: TwoStageReplayBufferSamples) -> th.Tensor:
-        return samples.rewards.new_full(samples.rewards.shape, gamma) if samples.discounts is None else samples.discounts
-
-    return TwoStageReplayBufferSamples(
-        observations={key: cat(v, second.observations[key]) for key, v in first.observations.items()},
-        actions=cat(first.actions, second.actions),
-        next_observations={key: cat(v, second.next_observations[key]) for key, v in first.next_observations.items()},
-        dones=cat(first.dones, second.dones),
-        rewards=cat(first.rewards, second.rewards),
-        candidates=cat(first.candidates, second.candidates),
-        pick_rank=cat(first.pick_rank, second.pick_rank),
-        discounts=None if first.discounts is None and second.discounts is None else cat(discounts(first), discounts(second)),
-    )
-
-
 def pack_decision(env_action: np.ndarray, candidates: np.ndarray, pick_rank: np.ndarray) -> np.ndarray:
     """Pack (n_envs, N) env actions, (n_envs, M, N) candidates and pick ranks into one (n_envs, N + 2·M·N) array,
     the ``buffer_action`` that SB3's ``collect_rollouts`` hands to :meth:`TwoStageReplayBuffer.add`."""
@@ -139,14 +112,12 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         batch_inds: np.ndarray,
         env: VecNormalize | None = None,
         env_indices: np.ndarray | None = None,
-        one_step: bool = False,
     ) -> TwoStageReplayBufferSamples:
-        """The transitions at rows ``batch_inds`` of envs ``env_indices`` (random envs by default, as SB3's); with
-        ``one_step`` one-step transitions whatever ``n_steps`` is."""
+        """The transitions at rows ``batch_inds`` of envs ``env_indices`` (random envs by default, as SB3's)."""
         if env_indices is None:
             env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
         obs = {key: self.to_torch(v[batch_inds, env_indices]) for key, v in self.observations.items()}
-        if self.n_steps == 1 or one_step:
+        if self.n_steps == 1:
             last, discounts = batch_inds, None
             rewards = self.rewards[batch_inds, env_indices]
         else:
@@ -186,48 +157,3 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         total += self.actions.nbytes + self.candidates.nbytes + self.pick_rank.nbytes
         total += self.rewards.nbytes + self.dones.nbytes + self.timeouts.nbytes
         return total // (self.buffer_size * self.n_envs)
-
-
-class CounterfactualBuffer(TwoStageReplayBuffer):
-    """The branched transitions of TwoStageSAC (implementation detail 17), one-step, aligned with its replay buffer: row
-    ``p`` of env ``e`` holds the transition of the second decision taken at the state of the replay buffer's row ``p``
-    of env ``e``, where that step branched. A row the replay buffer overwrites without a branch is cleared, so a pair
-    always shares its state.
-
-    :param buffer_size: the replay buffer's size (the same rows)
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.branched = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
-
-    def add_at(self, row: int, *transition: Any) -> None:
-        """Store the branched transitions of every env at row ``row`` (the replay buffer's next row).
-
-        :param transition: the arguments of :meth:`add` (observations, next observations, packed decisions, rewards,
-            dones, infos)
-        """
-        self.pos = row
-        self.add(*transition)
-        self.branched[row] = True
-
-    def clear(self, row: int) -> None:
-        """Row ``row`` of the replay buffer is overwritten by a step that did not branch."""
-        self.branched[row] = False
-
-    def size(self) -> int:
-        """The number of branched transitions held."""
-        return int(self.branched.sum())
-
-    def sample_branched(
-        self, batch_size: int, replay_buffer: TwoStageReplayBuffer | None = None
-    ) -> tuple[TwoStageReplayBufferSamples, TwoStageReplayBufferSamples | None]:
-        """``batch_size`` random branched transitions and, given ``replay_buffer``, the replayed transitions of the same
-        states, row for row (else None), one-step as the branched ones are, so that a pair's targets differ by the
-        decision alone."""
-        rows, envs = np.nonzero(self.branched)
-        pick = np.random.randint(0, len(rows), size=batch_size)
-        branched = self._get_samples(rows[pick], env_indices=envs[pick])
-        if replay_buffer is None:
-            return branched, None
-        return branched, replay_buffer._get_samples(rows[pick], env_indices=envs[pick], one_step=True)
