@@ -98,15 +98,6 @@ class SampledDecoder(Decoder):
     name = "sampled"
     deterministic = False
 
-    def preassign(
-        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
-    ) -> tuple[th.Tensor, th.Tensor | None]:
-        return th.where(view.assignable, dist.get_actions(False), -1), None
-
-    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        st = decode_round(policy.selector.head, view, task_of, False)
-        return st.rank, st.kept()
-
 
 @register_decoder
 class UniformDecoder(Decoder):
