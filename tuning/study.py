@@ -183,6 +183,9 @@ def objective(trial: optuna.Trial, args: argparse.Namespace) -> float:
     trial.set_user_attr("pid", os.getpid())
     env_kwargs = args.env_kwargs or {}
     kwargs = sample_two_stage_sac_params(trial, 0, 1, {})
+    # A warm-up as long as the budget would train nothing: it takes at most half the budget.
+    kwargs["learning_starts"] = min(kwargs["learning_starts"], args.n_timesteps // 2)
+    trial.set_user_attr("learning_starts", kwargs["learning_starts"])
     eval_env = Monitor(gym.make(args.env, **env_kwargs))
     callback = TrialEvalCallback(
         eval_env, trial, n_eval_episodes=args.eval_episodes, eval_freq=max(args.n_timesteps // args.n_evaluations, 1)
@@ -192,7 +195,7 @@ def objective(trial: optuna.Trial, args: argparse.Namespace) -> float:
     )
     try:
         model.learn(args.n_timesteps, callback=callback)
-    except (AssertionError, ValueError, RuntimeError) as error:  # NaN in a loss or a distribution
+    except (AssertionError, ValueError, RuntimeError, FloatingPointError) as error:  # divergence: a NaN loss or weight
         raise optuna.TrialPruned(f"training failed: {error}") from error
     finally:
         eval_env.close()

@@ -5,13 +5,32 @@ from __future__ import annotations
 import math
 import os
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
+
+
+class DivergenceError(FloatingPointError):
+    """Training produced a non-finite loss or parameter: the model can no longer learn (lower the learning rate)."""
+
+
+def check_finite_parameters(modules: Mapping[str, th.nn.Module | None], where: str) -> None:
+    """Raise :class:`DivergenceError` naming the first parameter of ``modules`` (name -> module) that holds NaN or an
+    infinite value. One multi-tensor norm per module: cheap beside a gradient step.
+
+    :param where: when it was found, for the message (e.g. the gradient step)
+    """
+    for name, module in modules.items():
+        params: list[th.Tensor] = list(module.parameters()) if module is not None else []
+        # The largest magnitude of each tensor: infinite or NaN exactly where some entry is (a 2-norm could overflow).
+        if not params or bool(th.isfinite(th.stack(th._foreach_norm(params, math.inf))).all()):
+            continue
+        bad = next(k for k, p in module.named_parameters() if not bool(th.isfinite(p).all()))  # type: ignore[union-attr]
+        raise DivergenceError(f"training diverged {where}: parameter {name}.{bad} holds NaN or infinite values")
 
 
 def check_counts(counts: dict[str, Any], minimum: int = 1) -> None:

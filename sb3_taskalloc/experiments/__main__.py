@@ -23,11 +23,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_table(sub: Any) -> None:
-    table = sub.add_parser("table", help="results table of one env (resumes from results/<env>/)")
+    table = sub.add_parser("table", help="results table of one env (resumes from <out>/<env>/)")
     table.add_argument("--env", required=True, choices=ENVS)
     table.add_argument("--seeds", type=int, default=5)
     table.add_argument("--budget", default="local", choices=list(BUDGETS))
-    table.add_argument("--out", default="results")
+    table.add_argument("--out", default="runs/tables", help="where the tables go (results/ only when asked)")
     table.add_argument(
         "--methods", nargs="+", default=None, choices=list(METHODS), metavar="METHOD", help=f"subset of {list(METHODS)}"
     )
@@ -39,7 +39,7 @@ def _add_almighty(sub: Any) -> None:
     fig.add_argument("--seeds", type=int, default=5)
     fig.add_argument("--steps", type=int, default=1200)
     fig.add_argument("--every", type=int, default=50)
-    fig.add_argument("--out", default="results/almighty")
+    fig.add_argument("--out", default="runs/almighty")
 
 
 def _add_diagnose(sub: Any) -> None:
@@ -53,7 +53,7 @@ def _add_diagnose(sub: Any) -> None:
     diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
     diag.add_argument("--branches", type=int, default=8, help="rollouts per branched state for corr(Q, Ḡ) (0: skip)")
     diag.add_argument("--branch-stride", type=int, default=10, help="branch every this many steps of an episode")
-    diag.add_argument("--out", default="results/diagnose")
+    diag.add_argument("--out", default="runs/diagnose")
     diag.add_argument(
         "--algo-kwargs", type=yaml_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"'
     )
@@ -97,7 +97,7 @@ def _add_learn(sub: Any) -> None:
         default={},
         help="TwoStageSAC keywords over the zoo config (policy_kwargs merge key by key)",
     )
-    learn.add_argument("--out", default="results/learn")
+    learn.add_argument("--out", default="runs/learn")
     learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
     learn.add_argument(
         "--zero-shot", default=None, metavar="ENV", help="then run the trained models on ENV (e.g. RBF-EntityShift) untrained"

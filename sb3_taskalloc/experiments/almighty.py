@@ -16,7 +16,7 @@ VARIANTS = {
 }
 
 
-def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str | Path = "results/almighty") -> Path:
+def almighty_figure(seeds: int = 5, steps: int = 1200, every: int = 50, out: str | Path = "runs/almighty") -> Path:
     """Train the three variants (``learning_rate=1e-3``, ``learning_starts=200``, as the learning check) and write
     ``almighty.csv`` (variant, seed, step, return) and ``almighty.png`` (mean and range over seeds, optimum 35)."""
     from tqdm.auto import tqdm

@@ -115,11 +115,12 @@ def writable_folder(path: str | Path) -> Path:
     return folder
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The co-training command line."""
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.workers", description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="TaskAlloc id (RBF or MT)")
     parser.add_argument("--timesteps", type=int, default=20_000, help="env steps")
-    parser.add_argument("--out", default="results/workers", help="output folder (models, incomes.csv, incomes.png)")
+    parser.add_argument("--out", default="runs/workers", help="output folder (models, incomes.csv, incomes.png)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--manager", default="learn", help='"learn" (new TwoStageSAC), "greedy" (frozen baseline) or a saved model (frozen)'
@@ -129,6 +130,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--conf-file", default=None, help=f"DDPG settings of new workers, YAML by env id (default: {DEFAULT_CONF})"
     )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.timesteps < 1:
         parser.error(f"--timesteps must be >= 1, got {args.timesteps}")

@@ -84,7 +84,7 @@ class LearnRun:
     algo_kwargs: dict[str, Any] = field(default_factory=dict)
     planners: tuple[str, ...] = PLANNERS
     milp_time_limit: float = 2.0
-    out: str | Path = "results/learn"
+    out: str | Path = "runs/learn"
     validation_episodes: int = 0
     select_dagger: int | None = None
     dagger_imitation: str | None = None

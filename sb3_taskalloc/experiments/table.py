@@ -98,7 +98,7 @@ class TableRun:
         env: str,
         seeds: int,
         budget: str,
-        out: str | Path = "results",
+        out: str | Path = "runs/tables",
         methods: list[str] | None = None,
         progress: bool = True,
     ) -> None:

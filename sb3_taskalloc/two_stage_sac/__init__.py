@@ -6,6 +6,7 @@ The implementation details (every equation; the deviations from the paper and fr
 
 from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
-from sb3_taskalloc.two_stage_sac.two_stage_sac import PAPER_KWARGS, TwoStageSAC
+from sb3_taskalloc.two_stage_sac.settings import PAPER_KWARGS
+from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 __all__ = ["PAPER_KWARGS", "SelectDAggerCallback", "TAMPolicy", "TwoStageSAC"]

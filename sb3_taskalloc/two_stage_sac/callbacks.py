@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import gymnasium as gym
 from gymnasium.envs.registration import EnvSpec
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_taskalloc.common.utils import check_bools
 from sb3_taskalloc.two_stage_sac.dagger import check_distill_select
 from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
@@ -47,6 +49,9 @@ class SelectDAggerCallback(BaseCallback):
     :param imitation: ``"sequence"`` or ``"set"`` (see ``distill_select``)
     :param seed: seed of the rollouts' env; None: :func:`dagger_seed` of the model's seed (the episodes of
         ``python -m sb3_taskalloc.experiments learn --select-dagger``), or unseeded when the model has no seed
+    :param after_interrupt: whether DAgger still runs when training ended early (Ctrl-C: rl-zoo3 then ends the callbacks
+        and saves the model). False, the default: it is skipped with a warning, so the model is saved at once. Ctrl-C
+        during DAgger stops it after the iteration in progress; the model keeps the iterations done
     :param verbose: 1 prints each iteration's figures
     """
 
@@ -59,9 +64,12 @@ class SelectDAggerCallback(BaseCallback):
         batch_size: int = 32,
         imitation: str = "sequence",
         seed: int | None = None,
+        after_interrupt: bool = False,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
+        check_bools({"after_interrupt": after_interrupt})
+        self.after_interrupt = after_interrupt
         check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)  # before training, not after
         self.kwargs: dict[str, Any] = {
             "iterations": iterations,
@@ -98,10 +106,26 @@ class SelectDAggerCallback(BaseCallback):
             return
         self._distilled = True
         assert isinstance(self.model, TwoStageSAC)
+        planned = self.model._total_timesteps
+        if self.model.num_timesteps < planned and not self.after_interrupt:
+            warnings.warn(
+                f"training ended at env step {self.model.num_timesteps} of {planned}: SelectDAggerCallback skips DAgger "
+                "(after_interrupt=True runs it anyway)",
+                stacklevel=2,
+            )
+            return
         seed = self.seed if self.seed is not None else None if self.model.seed is None else dagger_seed(self.model.seed)
         # The spec's wrappers (a Monitor, say) are left out: its id, keywords and time limit make the env.
         env = gym.make(dataclasses.replace(self.env_spec, additional_wrappers=()))
-        self.history = self.model.distill_select(env, seed=seed, **self.kwargs)
+        self.history = []
+        try:  # each iteration is recorded as it ends, so Ctrl-C keeps the ones done and lets the caller save the model
+            self.model.distill_select(env, seed=seed, callback=self.history.append, **self.kwargs)
+        except KeyboardInterrupt:
+            warnings.warn(
+                f"DAgger interrupted after {len(self.history)} of {self.kwargs['iterations']} iterations; the model keeps "
+                "them",
+                stacklevel=2,
+            )
         for stats in self.history:
             for key, value in stats.items():
                 self.logger.record(f"dagger/{key}", value)

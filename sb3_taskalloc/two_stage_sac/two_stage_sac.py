@@ -22,47 +22,16 @@ from stable_baselines3.common.utils import obs_as_tensor
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, pack_decision
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
-from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite
 from sb3_taskalloc.two_stage_sac import dagger, legacy
+from sb3_taskalloc.two_stage_sac import updates as stage
 from sb3_taskalloc.two_stage_sac.decoding import DecodingMixin
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
-from sb3_taskalloc.two_stage_sac.updates import (
-    PreAssignUpdate,
-    SelectUpdate,
-    check_select_kwargs,
-    entropy_coefficient,
-)
+from sb3_taskalloc.two_stage_sac.settings import check_select_kwargs, check_settings
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 
 #: Budget of ``learn()`` called without ``total_timesteps`` (env steps).
 DEFAULT_TOTAL_TIMESTEPS = 20_000
-
-#: Keywords of the paper's configuration, ``TwoStageSAC("TAMPolicy", env, **PAPER_KWARGS)``: γ 0.98 and τ 0.005, the
-#: joint entropy bonus with the entropy target of the earlier defaults, the env reward as paid on completion, a uniform
-#: warm-up, no prior term, PyTorch's initialisation (κ = κ_s = 1) and the paper's critic. The defaults differ where the
-#: learning experiment measured that the paper's setting does not learn within its budget (implementation details 2, 8,
-#: 10 and 12).
-PAPER_KWARGS: dict[str, Any] = {
-    "gamma": 0.98,
-    "tau": 0.005,
-    "target_entropy_ratio": 0.3,
-    "entropy_bonus": "sum",
-    "reward_timing": "completion",
-    "warmup_exploration": "uniform",
-    "prior_coef": 0.0,
-    "select_kwargs": {"prior_coef": 0.0},
-    "train_preassign_actor": True,
-    "policy_kwargs": {"heuristic_init": False, "mixer_kwargs": {"team_value": False}},
-}
-
-
-#: The allowed values of TwoStageSAC's choices.
-CHOICES: dict[str, tuple[str, ...]] = {
-    "reward_timing": ("completion", "commitment"),
-    "entropy_bonus": ("sum", "mean"),
-    "warmup_exploration": ("uniform", "policy"),
-}
 
 
 class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
@@ -177,11 +146,6 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
             support_multi_env=True,
         )
         legacy.check_policy_kwargs(self.policy_class, self.policy_kwargs)
-        check_counts({"batch_size": batch_size, "target_update_interval": target_update_interval, "n_steps": n_steps})
-        given = {"reward_timing": reward_timing, "entropy_bonus": entropy_bonus, "warmup_exploration": warmup_exploration}
-        check_choices({name: (value, CHOICES[name]) for name, value in given.items()})
-        check_bools({"train_preassign_actor": train_preassign_actor})
-        check_finite({"prior_coef": prior_coef}, inclusive=True)
         self.n_steps = n_steps
         if n_steps > 1:
             self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "n_steps": n_steps, "gamma": gamma}
@@ -190,8 +154,8 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         self.reward_timing = reward_timing
         self.entropy_bonus = entropy_bonus
         self.warmup_exploration = warmup_exploration
-        self.train_preassign_actor = bool(train_preassign_actor)
-        self.prior_coef = float(prior_coef)
+        self.train_preassign_actor = train_preassign_actor
+        self.prior_coef = prior_coef
         self.select_kwargs = check_select_kwargs(select_kwargs)
         self.target_update_interval = target_update_interval
         if _init_setup_model:
@@ -200,6 +164,7 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     # ------------------------------------------------------------------ setup
 
     def _setup_model(self) -> None:
+        check_settings(self)  # here, not in __init__, so that ``load(path, **kwargs)`` is checked too
         if self.observation_space is not None:
             check_spaces(self.observation_space, self.action_space)
         if self._vec_normalize_env is not None:
@@ -225,16 +190,16 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
                 "to pre-assign; set train_preassign_actor=True"
             )
         lr = self.lr_schedule(1)
-        self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = entropy_coefficient(
+        self.log_ent_coef, self.ent_coef_optimizer, self.ent_coef_tensor = stage.entropy_coefficient(
             self.ent_coef, "ent_coef", self.device, lr
         )
-        self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = entropy_coefficient(
+        self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = stage.entropy_coefficient(
             self.select_kwargs["ent_coef"], "select_kwargs['ent_coef']", self.device, lr
         )
         # One update per trained stage: none for the pre-assignment of a policy without it ("W/o Pre").
-        self.updates: list[PreAssignUpdate | SelectUpdate] = [SelectUpdate(self)]
+        self.updates: list[stage.PreAssignUpdate | stage.SelectUpdate] = [stage.SelectUpdate(self)]
         if self.actor is not None:
-            self.updates.insert(0, PreAssignUpdate(self, learn_actor=self.train_preassign_actor))
+            self.updates.insert(0, stage.PreAssignUpdate(self, learn_actor=self.train_preassign_actor))
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -305,12 +270,14 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
             # critic → actor → temperature (sb3_taskalloc.two_stage_sac.updates).
             for update in self.updates:
                 update(obs, replay_data, logs)  # type: ignore[arg-type]
+            stage.check_losses(self, logs, gradient_step)
             # Target networks: Polyak averaging every ``target_update_interval`` gradient steps.
             if gradient_step % self.target_update_interval == 0:
                 for update in self.updates:
                     update.update_target()
 
         self._n_updates += gradient_steps
+        stage.check_parameters(self)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
@@ -329,6 +296,13 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         """Train for ``total_timesteps`` env steps (default :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000)."""
         if not (isinstance(total_timesteps, int | np.integer) and total_timesteps >= 0):
             raise ValueError(f"total_timesteps must be a non-negative integer, got {total_timesteps!r}")
+        end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
+        if end <= self.learning_starts:
+            warnings.warn(
+                f"learn({total_timesteps}) ends at env step {end}, within the warm-up (learning_starts="
+                f"{self.learning_starts}): no gradient step will run, and the model stays as it is",
+                stacklevel=2,
+            )
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,

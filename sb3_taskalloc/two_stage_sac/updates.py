@@ -9,7 +9,7 @@ Equations and numbers refer to the paper and to the implementation details of :m
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch as th
 from torch.nn import functional as F
@@ -18,34 +18,16 @@ import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
 from sb3_taskalloc.common.policies import CriticContext
 from sb3_taskalloc.common.torch_layers import ObsView
-from sb3_taskalloc.common.utils import check_counts, check_finite, foreach_polyak_update, settings_over
+from sb3_taskalloc.common.utils import (
+    DivergenceError,
+    check_finite_parameters,
+    foreach_polyak_update,
+)
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 Logs = dict[str, list[float]]
-
-#: The select stage's settings (``select_kwargs``) and their defaults: its entropy coefficient α_s (as ``ent_coef``),
-#: the weight β_s of its prior term (implementation detail 12), the rows of each minibatch it trains on (each holds up
-#: to M × team-size transitions, so a few rows suffice), and the team-search distillation term (detail 18): its weight
-#: λ_p (0: off), the decodes per task including the deterministic one, and their temperature.
-SELECT_DEFAULTS: dict[str, Any] = {
-    "ent_coef": "auto",
-    "prior_coef": 3.0,
-    "batch_size": 16,
-    "search_coef": 0.0,
-    "search_samples": 16,
-    "search_temperature": 1.0,
-}
-
-
-def check_select_kwargs(select_kwargs: dict[str, Any] | None) -> dict[str, Any]:
-    """The select stage's settings over :data:`SELECT_DEFAULTS`, with a clear error for an unknown or bad one."""
-    settings = settings_over("select_kwargs", select_kwargs, SELECT_DEFAULTS)
-    check_counts({f"select_kwargs[{k!r}]": settings[k] for k in ("batch_size", "search_samples")})
-    check_finite({f"select_kwargs[{k!r}]": settings[k] for k in ("prior_coef", "search_coef")}, inclusive=True)
-    check_finite({"select_kwargs['search_temperature']": settings["search_temperature"]})
-    return settings
 
 
 def entropy_coefficient(
@@ -83,6 +65,22 @@ def optimizer_step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> float:
     loss.backward()
     optimizer.step()
     return loss.item()
+
+
+def check_losses(model: TwoStageSAC, logs: Logs, gradient_step: int) -> None:
+    """Divergence is an error: a non-finite loss or temperature of this gradient step stops training, naming it."""
+    for key, values in logs.items():
+        if values and not math.isfinite(values[-1]):
+            raise DivergenceError(
+                f"training diverged at gradient step {model._n_updates + gradient_step + 1} (env step "
+                f"{model.num_timesteps}): {key} = {values[-1]}; lower the learning rate ({model.learning_rate!r})"
+            )
+
+
+def check_parameters(model: TwoStageSAC) -> None:
+    """Divergence is an error: a non-finite parameter of a trained network stops training, naming it."""
+    modules = {"actor": model.actor, "critic": model.critic, "selector": model.selector, "select_critic": model.select_critic}
+    check_finite_parameters(modules, f"by gradient step {model._n_updates} (env step {model.num_timesteps})")
 
 
 class PreAssignCriticLoss(NamedTuple):

@@ -59,12 +59,13 @@ def _cell(v: Any) -> str:
     return str(v)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The benchmarks' command line."""
     from sb3_taskalloc.experiments.budgets import yaml_mapping
 
     parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.bench", description=__doc__)
     parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
-    parser.add_argument("--out", default="bench_out", help="folder for the JSON results")
+    parser.add_argument("--out", default="runs/bench", help="folder for the JSON results")
     parser.add_argument("--quick", action="store_true", help="shorter timings (smoke runs)")
     parser.add_argument(
         "--model", default=None, help="policy and labels benchmarks: a trained TwoStageSAC for the episode states"
@@ -87,6 +88,11 @@ def main(argv: list[str] | None = None) -> None:
         choices=["auto", "cpu", "cuda"],
         help="devices for the policy and train benchmarks: auto = the CPU, plus CUDA when a GPU is available",
     )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
     args = parser.parse_args(argv)
     import torch
 

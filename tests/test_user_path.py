@@ -1,0 +1,168 @@
+"""What a user meets on the way: divergence stops training with its cause, Ctrl-C keeps the trained model, and no
+command writes into the tracked ``results/`` unless asked."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import optuna
+import pytest
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+
+import envs  # noqa: F401  (registers the TaskAlloc ids)
+from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
+from sb3_taskalloc.common.utils import DivergenceError, check_finite_parameters
+
+SMALL = {"hidden_dim": 16}
+
+
+def test_a_diverging_learning_rate_stops_training_with_its_cause():
+    """``learning_rate=1e4`` used to leave NaN weights behind a normal-looking ``learn``: now it stops at the first
+    non-finite loss or parameter, naming the step and what diverged, and nothing NaN is evaluated."""
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_rate=1e4, learning_starts=8, batch_size=8, seed=0, policy_kwargs=SMALL
+    )
+    with pytest.raises(DivergenceError, match=r"training diverged (at|by) gradient step \d+ \(env step \d+\)"):
+        model.learn(400)
+    assert isinstance(DivergenceError("x"), FloatingPointError)
+
+
+def test_a_non_finite_parameter_is_named():
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=8, batch_size=8, seed=0, policy_kwargs=SMALL)
+    model.learn(12)
+    check_finite_parameters({"selector": model.selector}, "here")  # finite: nothing raised
+    with th.no_grad():
+        next(model.selector.parameters()).view(-1)[0] = math.inf
+    with pytest.raises(DivergenceError, match=r"parameter selector\.\S+ holds NaN or infinite values"):
+        check_finite_parameters({"actor": model.actor, "selector": model.selector}, "here")
+    with pytest.raises(DivergenceError, match="training diverged"):
+        model.train(gradient_steps=1, batch_size=8)
+
+
+def test_a_study_prunes_a_diverging_trial(monkeypatch, tmp_path):
+    """The study's objective counts divergence as pruned, not as a finished trial with a return."""
+    from tuning import study
+
+    def diverge(self, *args, **kwargs):
+        raise DivergenceError("training diverged at gradient step 3 (env step 10): critic_loss = nan")
+
+    monkeypatch.setattr(TwoStageSAC, "learn", diverge)
+    args = argparse.Namespace(env="TaskAlloc/Almighty-v0", env_kwargs=None, eval_episodes=1, n_timesteps=10,
+                              n_evaluations=1, seed=0, device="cpu")  # fmt: skip
+    trial = optuna.create_study().ask()
+    with pytest.raises(optuna.TrialPruned, match="diverged"):
+        study.objective(trial, args)
+
+
+class _StopAt(BaseCallback):
+    """Ends training after ``steps`` env steps, as Ctrl-C does inside rl-zoo3 (its ``learn`` returns early)."""
+
+    def __init__(self, steps: int) -> None:
+        super().__init__()
+        self.steps = steps
+
+    def _on_step(self) -> bool:
+        return self.num_timesteps < self.steps
+
+
+def _rbf_model() -> TwoStageSAC:
+    return TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=8, batch_size=8, seed=0, policy_kwargs=SMALL)
+
+
+def test_dagger_is_skipped_when_training_ended_early():
+    """Training stopped before its budget (Ctrl-C in rl-zoo3, which then ends the callbacks and saves the model): the
+    DAgger callback skips its iterations with a warning instead of delaying the save; ``after_interrupt=True`` runs
+    them anyway."""
+    model = _rbf_model()
+    dagger = SelectDAggerCallback(iterations=1, episodes=1, epochs=1)
+    with pytest.warns(UserWarning, match="training ended at env step 12 of 40: SelectDAggerCallback skips DAgger"):
+        model.learn(40, callback=[_StopAt(12), dagger])
+    assert dagger.history == []
+    again = SelectDAggerCallback(iterations=1, episodes=1, epochs=1, after_interrupt=True)
+    model.learn(40, callback=[_StopAt(12), again])
+    assert len(again.history) == 1
+    with pytest.raises(ValueError, match="after_interrupt must be True or False"):
+        SelectDAggerCallback(after_interrupt="no")  # type: ignore[arg-type]
+
+
+def test_ctrl_c_during_dagger_keeps_the_iterations_done(monkeypatch):
+    """Ctrl-C during DAgger stops it; the callback returns normally (so the caller saves the model) with the
+    iterations done."""
+    model = _rbf_model()
+    real = TwoStageSAC.distill_select
+
+    def interrupted(self, env, **kwargs):
+        done = kwargs.pop("callback")
+        real(self, env, callback=done, **{**kwargs, "iterations": 1})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(TwoStageSAC, "distill_select", interrupted)
+    dagger = SelectDAggerCallback(iterations=3, episodes=1, epochs=1)
+    with pytest.warns(UserWarning, match="DAgger interrupted after 1 of 3 iterations"):
+        model.learn(16, callback=dagger)
+    assert len(dagger.history) == 1
+    obs, _ = gym.make("TaskAlloc/RBF-v0").reset(seed=0)
+    assert np.isfinite(model.predict(obs, deterministic=True)[0]).all()
+
+
+def test_no_command_writes_into_results_by_default():
+    """Every command's output folder defaults to ``runs/`` (or another gitignored folder): ``results/`` holds the
+    committed reports and changes only when ``--out`` asks for it."""
+    from sb3_taskalloc.experiments import __main__ as experiments
+    from sb3_taskalloc.experiments import bench, cotrain, demo
+    from sb3_taskalloc.experiments.learn import LearnRun
+    from sb3_taskalloc.experiments.table import TableRun
+
+    parser = experiments.build_parser()
+    commands = {
+        "table": ["table", "--env", "RBF"],
+        "almighty": ["almighty"],
+        "diagnose": ["diagnose", "--env", "RBF"],
+        "learn": ["learn", "--env", "RBF"],
+    }
+    outs = {name: parser.parse_args(argv).out for name, argv in commands.items()}
+    outs["workers"] = cotrain.build_parser().parse_args([]).out
+    outs["demo"] = demo.parse_args([]).out
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        outs["bench"] = bench.build_parser().parse_args(["envs"]).out
+    outs["LearnRun"] = str(LearnRun("RBF").out)
+    outs["TableRun"] = str(TableRun("RBF", 1, "smoke").folder.parent)
+    ignored = ("runs", "demo_out")
+    assert all(str(out).split("/")[0] in ignored for out in outs.values()), outs
+
+
+def test_a_budget_within_the_warm_up_is_announced():
+    """``learn`` shorter than ``learning_starts`` runs no gradient step: it says so instead of returning the untrained
+    model as if trained."""
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/EPT-v0", policy_kwargs=SMALL)
+    with pytest.warns(UserWarning, match=r"learn\(200\) ends at env step 200, within the warm-up \(learning_starts=500\)"):
+        model.learn(200)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.learn(400, reset_num_timesteps=False)  # ends at 600, past the warm-up: trains, no warning
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"gamma": float("nan")}, "gamma must be a finite number > 0"),
+        ({"gamma": 1.5}, r"gamma must lie in \(0, 1\]"),
+        ({"tau": 0.0}, "tau must be a finite number > 0"),
+        ({"target_entropy_ratio": -0.1}, "target_entropy_ratio must be a finite number >= 0"),
+        ({"learning_rate": float("inf")}, "learning_rate must be a finite number >= 0"),
+        ({"learning_starts": -1}, "learning_starts must be an integer ≥ 0"),
+    ],
+)
+def test_numeric_settings_are_range_checked_at_construction_and_at_load(tmp_path, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=SMALL, **kwargs)
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=SMALL)
+    model.save(tmp_path / "m.zip")
+    with pytest.raises(ValueError, match=match):
+        TwoStageSAC.load(tmp_path / "m.zip", **kwargs)
