@@ -166,3 +166,30 @@ def test_numeric_settings_are_range_checked_at_construction_and_at_load(tmp_path
     model.save(tmp_path / "m.zip")
     with pytest.raises(ValueError, match=match):
         TwoStageSAC.load(tmp_path / "m.zip", **kwargs)
+
+
+def test_saved_files_get_the_usual_mode(tmp_path):
+    """An atomic save writes a temporary file first; the file in place has the mode of any new file, not mkstemp's
+    0600."""
+    import os
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=SMALL)
+    umask = os.umask(0o022)
+    try:
+        model.save(tmp_path / "m.zip")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "m.zip").stat().st_mode & 0o777 == 0o644
+    assert [p.name for p in tmp_path.iterdir()] == ["m.zip"]
+
+
+def test_commands_take_env_names_in_both_forms_and_show_defaults(capsys):
+    from sb3_taskalloc.experiments import __main__ as experiments
+    from sb3_taskalloc.experiments import demo
+
+    args = experiments.build_parser().parse_args(["learn", "--env", "TaskAlloc/MT-v0", "--zero-shot", "MT-EntityShift"])
+    assert (args.env, args.zero_shot) == ("MT", "MT-EntityShift")
+    assert demo.parse_args(["--env", "RBF"]).env == "TaskAlloc/RBF-v0"
+    with pytest.raises(SystemExit):
+        experiments.build_parser().parse_args(["learn", "--help"])
+    assert "(default: runs/learn)" in " ".join(capsys.readouterr().out.split())

@@ -48,6 +48,7 @@ from stable_baselines3.common.vec_env import VecEnv
 import envs  # noqa: F401  (registers the TaskAlloc/* ids)
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
+from sb3_taskalloc.experiments.budgets import full_env_id
 from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
 from tuning.storage import journal_path, make_storage
 
@@ -325,11 +326,13 @@ def _env_kwargs(text: str) -> dict[str, Any]:
     return value
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """The module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="python -m tuning.study", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="env id")
+    parser = argparse.ArgumentParser(prog="python -m tuning.study", description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", type=full_env_id, default="TaskAlloc/RBF-v0", help="env id")
     parser.add_argument("--env-kwargs", type=_env_kwargs, default=None, help='env keywords as YAML, e.g. "{max_tasks: 5}"')
     parser.add_argument("--n-trials", type=int, default=50, help="finished trials of the whole study (all workers)")
     parser.add_argument("--n-timesteps", type=int, default=20_000, help="env steps per trial")

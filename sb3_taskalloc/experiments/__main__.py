@@ -10,12 +10,17 @@ from pathlib import Path
 from typing import Any
 
 import envs  # registers the TaskAlloc ids
-from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, yaml_mapping
+from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, env_name, yaml_mapping
+
+#: Every command's ``--help`` shows the defaults.
+DEFAULTS = argparse.ArgumentDefaultsHelpFormatter
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line of every experiment."""
-    parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.experiments", description=__doc__)
+    parser = argparse.ArgumentParser(
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter, prog="python -m sb3_taskalloc.experiments", description=__doc__
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_table, _add_almighty, _add_diagnose, _add_learn):
         add(sub)
@@ -23,9 +28,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_table(sub: Any) -> None:
-    table = sub.add_parser("table", help="results table of one env (resumes from <out>/<env>/)")
-    table.add_argument("--env", required=True, choices=ENVS)
-    table.add_argument("--seeds", type=int, default=5)
+    table = sub.add_parser(
+        "table",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="results table of one env (resumes from <out>/<env>/)",
+    )
+    table.add_argument("--env", required=True, type=env_name, choices=ENVS)
+    table.add_argument("--seeds", type=int, default=5, help="training seeds per cell")
     table.add_argument("--budget", default="local", choices=list(BUDGETS))
     table.add_argument("--out", default="runs/tables", help="where the tables go (results/ only when asked)")
     table.add_argument(
@@ -35,34 +44,44 @@ def _add_table(sub: Any) -> None:
 
 
 def _add_almighty(sub: Any) -> None:
-    fig = sub.add_parser("almighty", help="return vs steps on Almighty: pre-assign, sequence, random (the paper's figure)")
-    fig.add_argument("--seeds", type=int, default=5)
-    fig.add_argument("--steps", type=int, default=1200)
-    fig.add_argument("--every", type=int, default=50)
-    fig.add_argument("--out", default="runs/almighty")
+    fig = sub.add_parser(
+        "almighty",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="return vs steps on Almighty: pre-assign, sequence, random (the paper's figure)",
+    )
+    fig.add_argument("--seeds", type=int, default=5, help="training seeds")
+    fig.add_argument("--steps", type=int, default=1200, help="env steps per seed")
+    fig.add_argument("--every", type=int, default=50, help="env steps between evaluations")
+    fig.add_argument("--out", default="runs/almighty", help="output folder")
 
 
 def _add_diagnose(sub: Any) -> None:
     diag = sub.add_parser(
-        "diagnose", help="critic calibration, entropy bonus, KL to the initial rule, sampled vs argmax return"
+        "diagnose",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="critic calibration, entropy bonus, KL to the initial rule, sampled vs argmax return",
     )
-    diag.add_argument("--env", required=True, choices=ENVS)
+    diag.add_argument("--env", required=True, type=env_name, choices=ENVS)
     diag.add_argument("--model", default=None, help="a saved TwoStageSAC (default: a new one, trained for --steps)")
     diag.add_argument("--steps", type=int, default=0, help="env steps to train a new model first (0: untrained)")
     diag.add_argument("--episodes", type=int, default=3, help="sampled and deterministic evaluation episodes each")
     diag.add_argument("--seed", type=int, default=0, help="training seed (evaluation seeds start at 10,000)")
     diag.add_argument("--branches", type=int, default=8, help="rollouts per branched state for corr(Q, Ḡ) (0: skip)")
     diag.add_argument("--branch-stride", type=int, default=10, help="branch every this many steps of an episode")
-    diag.add_argument("--out", default="runs/diagnose")
+    diag.add_argument("--out", default="runs/diagnose", help="output folder")
     diag.add_argument(
         "--algo-kwargs", type=yaml_mapping, default={}, help='TwoStageSAC keywords, e.g. "{entropy_bonus: mean}"'
     )
 
 
 def _add_learn(sub: Any) -> None:
-    learn = sub.add_parser("learn", help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)")
-    learn.add_argument("--env", required=True, choices=ENVS)
-    learn.add_argument("--seeds", type=int, default=5)
+    learn = sub.add_parser(
+        "learn",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)",
+    )
+    learn.add_argument("--env", required=True, type=env_name, choices=ENVS)
+    learn.add_argument("--seeds", type=int, default=5, help="training seeds")
     learn.add_argument(
         "--first-seed", type=int, default=0, metavar="S",
         help="train seeds S .. S + seeds - 1 (a replicate on new seeds and new held-out episodes; default 0)",
@@ -97,10 +116,14 @@ def _add_learn(sub: Any) -> None:
         default={},
         help="TwoStageSAC keywords over the zoo config (policy_kwargs merge key by key)",
     )
-    learn.add_argument("--out", default="runs/learn")
+    learn.add_argument("--out", default="runs/learn", help="output folder (results/ only when asked)")
     learn.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process and one thread each")
     learn.add_argument(
-        "--zero-shot", default=None, metavar="ENV", help="then run the trained models on ENV (e.g. RBF-EntityShift) untrained"
+        "--zero-shot",
+        type=env_name,
+        default=None,
+        metavar="ENV",
+        help="then run the trained models on ENV (e.g. RBF-EntityShift) untrained",
     )
     learn.add_argument(
         "--decoder", default="argmax", metavar="NAME",

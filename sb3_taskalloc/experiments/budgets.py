@@ -212,6 +212,17 @@ def training_env(env_id: str, hyperparameters: dict[str, Any], seed: int) -> tup
     return make_vec_env(env_id, n_envs=n_envs, seed=seed), kwargs
 
 
+def env_name(text: str) -> str:
+    """A command line's env as the experiments name it (``"RBF"``), from either that or its id (``"TaskAlloc/RBF-v0"``):
+    every command takes both."""
+    return text.removeprefix("TaskAlloc/").removesuffix("-v0")
+
+
+def full_env_id(text: str) -> str:
+    """A command line's env as its registered id (``"TaskAlloc/RBF-v0"``), from either that or its short name."""
+    return f"TaskAlloc/{env_name(text)}-v0"
+
+
 def yaml_mapping(text: str) -> dict[str, Any]:
     """A command-line option's YAML (or JSON) mapping, e.g. ``"{entropy_bonus: mean}"``; anything else is an
     :class:`argparse.ArgumentTypeError` naming the text."""

@@ -117,8 +117,14 @@ def writable_folder(path: str | Path) -> Path:
 
 def build_parser() -> argparse.ArgumentParser:
     """The co-training command line."""
-    parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.workers", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="TaskAlloc id (RBF or MT)")
+    from sb3_taskalloc.experiments.budgets import full_env_id
+
+    parser = argparse.ArgumentParser(
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="python -m sb3_taskalloc.workers",
+        description=__doc__.split("\n\n")[0],
+    )
+    parser.add_argument("--env", type=full_env_id, default="TaskAlloc/RBF-v0", help="TaskAlloc id (RBF or MT)")
     parser.add_argument("--timesteps", type=int, default=20_000, help="env steps")
     parser.add_argument("--out", default="runs/workers", help="output folder (models, incomes.csv, incomes.png)")
     parser.add_argument("--seed", type=int, default=0)

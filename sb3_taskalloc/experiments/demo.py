@@ -12,15 +12,19 @@ from typing import Any
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.demo", description=__doc__)
-    parser.add_argument("--env", default="TaskAlloc/RBF-v0", help="environment id")
+    from sb3_taskalloc.experiments.budgets import full_env_id
+
+    parser = argparse.ArgumentParser(
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter, prog="python -m sb3_taskalloc.demo", description=__doc__
+    )
+    parser.add_argument("--env", type=full_env_id, default="TaskAlloc/RBF-v0", help="environment id")
     parser.add_argument("--steps", type=int, default=4000, help="training env steps (all envs together)")
     parser.add_argument("--n-envs", type=int, default=8, help="envs collected at once (one batched decision for all)")
-    parser.add_argument("--eval-episodes", type=int, default=3)
+    parser.add_argument("--eval-episodes", type=int, default=3, help="held-out evaluation episodes")
     parser.add_argument("--eval-every", type=int, default=1000, help="env steps between deterministic evaluations")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="training seed")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
-    parser.add_argument("--out", default="demo_out")
+    parser.add_argument("--out", default="demo_out", help="output folder")
     return parser.parse_args(argv)
 
 

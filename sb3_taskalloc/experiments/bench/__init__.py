@@ -63,7 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     """The benchmarks' command line."""
     from sb3_taskalloc.experiments.budgets import yaml_mapping
 
-    parser = argparse.ArgumentParser(prog="python -m sb3_taskalloc.bench", description=__doc__)
+    parser = argparse.ArgumentParser(
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter, prog="python -m sb3_taskalloc.bench", description=__doc__
+    )
     parser.add_argument("which", choices=[*BENCHES, "all"], help="benchmark to run")
     parser.add_argument("--out", default="runs/bench", help="folder for the JSON results")
     parser.add_argument("--quick", action="store_true", help="shorter timings (smoke runs)")
