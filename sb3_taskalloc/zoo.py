@@ -6,7 +6,7 @@ the naive RL baseline) into rl-zoo3 the documented way, by adding them to its ``
 ``train()`` or ``enjoy()`` with the remaining arguments. ``--gym-packages envs`` is added when absent, so the
 ``TaskAlloc/*`` ids are registered in rl-zoo3's process (and in its subprocess envs)::
 
-    python -m sb3_taskalloc.zoo train --algo two_stage_sac --env TaskAlloc/RBF-v0 --conf-file zoo_configs/two_stage_sac.yml
+    python -m sb3_taskalloc.zoo train --algo two_stage_sac --env TaskAlloc/RBF-v0  # the shipped zoo_configs/two_stage_sac.yml
     python -m sb3_taskalloc.zoo enjoy --algo two_stage_sac --env TaskAlloc/RBF-v0 -f logs --exp-id 1 -n 300
 
 rl-zoo3 is an optional extra (``pip install -e ".[zoo]"``); importing :mod:`sb3_taskalloc` never imports it.
@@ -15,6 +15,7 @@ rl-zoo3 is an optional extra (``pip install -e ".[zoo]"``); importing :mod:`sb3_
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 from typing import Any
 
 from sb3_taskalloc.two_stage_sac import TwoStageSAC
@@ -54,6 +55,18 @@ def register(command: str = "train") -> None:
     hyperparams_opt.HYPERPARAMS_CONVERTER["maskable_ppo"] = hyperparams_opt.convert_onpolicy_params
 
 
+def default_config(args: list[str]) -> Path:
+    """The shipped config of the ``--algo`` in rl-zoo3's arguments ``args`` (``zoo_configs/<algo>.yml``): without it
+    rl-zoo3 would look in its own folder, which knows none of the TaskAlloc ids."""
+    from sb3_taskalloc.zoo_config import config_path
+
+    algo = args[args.index("--algo") + 1] if "--algo" in args[:-1] else "two_stage_sac"
+    path = config_path(f"{algo}.yml")
+    if not path.is_file():
+        raise SystemExit(f"no shipped zoo config for --algo {algo}: give --conf-file")
+    return path
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run rl-zoo3's ``train`` or ``enjoy`` with the project's algorithms registered.
 
@@ -66,6 +79,8 @@ def main(argv: list[str] | None = None) -> None:
     command, rest = argv[0], argv[1:]
     if "--gym-packages" not in rest:
         rest += ["--gym-packages", "envs"]
+    if command == "train" and not {"--conf-file", "-conf"} & set(rest):
+        rest += ["--conf-file", str(default_config(rest))]
     register(command)
     if command == "train":
         from rl_zoo3.train import train as run

@@ -186,8 +186,8 @@ def test_table_trains_w_o_pre_without_the_team_search(tmp_path, monkeypatch):
 def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path):
     """``--algo-kwargs`` go over the env's zoo block; a ``policy_kwargs`` override merges key by key, so that setting one
     policy keyword keeps the block's others (RBF's two rounds) and the run's key changes with it."""
-    from sb3_taskalloc.experiments.budgets import over_zoo, zoo_hyperparameters
     from sb3_taskalloc.experiments.learn import LearnRun
+    from sb3_taskalloc.zoo_config import over_zoo, zoo_hyperparameters
 
     block = zoo_hyperparameters("TaskAlloc/RBF-v0")
     assert block["policy_kwargs"]["rounds"] > 1  # what the merge must keep
@@ -204,7 +204,7 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     assert runs[0].key != runs[1].key
     # A callback entry (rl-zoo3's key) is not passed on to TwoStageSAC: the DAgger callback is zoo_dagger's, with the
     # callback's defaults filled in; any other callback, or keywords the callback refuses, are named.
-    from sb3_taskalloc.experiments.budgets import DAGGER_CALLBACK, zoo_dagger
+    from sb3_taskalloc.zoo_config import DAGGER_CALLBACK, zoo_dagger
 
     config = tmp_path / "two_stage_sac.yml"
 

@@ -193,3 +193,42 @@ def test_commands_take_env_names_in_both_forms_and_show_defaults(capsys):
     with pytest.raises(SystemExit):
         experiments.build_parser().parse_args(["learn", "--help"])
     assert "(default: runs/learn)" in " ".join(capsys.readouterr().out.split())
+
+
+def test_from_zoo_is_the_recommended_configuration():
+    """One call gives an env's zoo block: its keywords, its envs, its budget as learn()'s default and its DAgger."""
+    from sb3_taskalloc.zoo_config import zoo_hyperparameters
+
+    model = TwoStageSAC.from_zoo("TaskAlloc/RBF-v0", seed=0, _init_setup_model=False)
+    block = zoo_hyperparameters("TaskAlloc/RBF-v0")
+    assert model.n_envs == block["n_envs"] == 8 and model.tau == block["tau"] and not model.train_preassign_actor
+    assert model.select_kwargs["search_coef"] == block["select_kwargs"]["search_coef"] and model.zoo_n_timesteps == 18_000
+    assert model.policy_kwargs["rounds"] == 4
+    assert [type(c).__name__ for c in model.zoo_callbacks] == ["SelectDAggerCallback"]
+    assert model.zoo_callbacks[0].kwargs["iterations"] == 8
+    small = TwoStageSAC.from_zoo(
+        "TaskAlloc/Almighty-v0", seed=0, n_timesteps=30, learning_starts=10, policy_kwargs={"hidden_dim": 16}
+    )
+    assert small.learning_rate == pytest.approx(1e-3) and small.policy.hidden_dim == 16 and small.zoo_callbacks == []
+    small.learn()  # the overridden budget of the block
+    assert small.num_timesteps == 30 and small._n_updates > 0
+    with pytest.raises(ValueError, match="has no block for 'TaskAlloc/Nope-v0'"):
+        TwoStageSAC.from_zoo("TaskAlloc/Nope-v0")
+
+
+def test_zoo_train_uses_the_shipped_config_by_default(monkeypatch):
+    """``python -m sb3_taskalloc.zoo train`` without ``--conf-file`` trains with the packaged config, not rl-zoo3's
+    folder (which knows no TaskAlloc id)."""
+    import sys
+
+    import rl_zoo3.train
+
+    from sb3_taskalloc import zoo
+    from sb3_taskalloc.zoo_config import config_path
+
+    seen: list[list[str]] = []
+    monkeypatch.setattr(rl_zoo3.train, "train", lambda: seen.append(list(sys.argv)))
+    monkeypatch.setattr(sys, "argv", ["x"])
+    zoo.main(["train", "--algo", "two_stage_sac", "--env", "TaskAlloc/RBF-v0"])
+    assert seen[0][seen[0].index("--conf-file") + 1] == str(config_path("two_stage_sac.yml"))
+    assert config_path("two_stage_sac.yml").is_file() and config_path("ddpg.yml").is_file()

@@ -13,7 +13,7 @@ import yaml
 
 import envs
 from sb3_taskalloc import SelectDAggerCallback, TAMPolicy, TwoStageSAC
-from sb3_taskalloc.experiments.budgets import zoo_dagger
+from sb3_taskalloc.zoo_config import zoo_dagger
 
 pytest.importorskip("rl_zoo3", reason='rl-zoo3 is the optional "zoo" extra')
 

@@ -230,8 +230,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
 
 def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import over_zoo, training_env
     from sb3_taskalloc.experiments.diagnose import diagnose, write
+    from sb3_taskalloc.zoo_config import over_zoo, training_env
 
     if args.steps < 0 or args.episodes < 1:
         parser.error("--steps must be >= 0 and --episodes >= 1")

@@ -6,7 +6,6 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from functools import cache
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -14,6 +13,7 @@ import numpy as np
 
 #: Planner settings of the ``local`` and ``smoke`` budgets (rollouts per re-plan are what makes them slow).
 PLANNER_BUDGET: dict[str, Any] = {"population": 20, "budget": 100}
+
 
 ROWS = [
     "train",
@@ -120,96 +120,6 @@ FOOTNOTES = {
     "scratch": "n/a (scratch): only Ours is trained from scratch on the presets, as the reference of its zero-shot goal.",
     "preset": "n/a (no preset): Almighty has no entity or task shift presets.",
 }
-
-
-#: rl-zoo3's import path of the one callback of a zoo block that the experiments run: the DAgger of the pointer, which
-#: ``learn`` runs as its DAgger phase (``--select-dagger``) and the table after training its columns.
-DAGGER_CALLBACK = "sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback"
-
-
-def _zoo_block(env_id: str, path: str | Path | None) -> tuple[Path, dict[str, Any]]:
-    """The config file read and ``env_id``'s block in it (``{}`` when the file or the block is missing)."""
-    import yaml
-
-    path = Path(path) if path else Path(__file__).resolve().parents[2] / "zoo_configs" / "two_stage_sac.yml"
-    if not path.exists():
-        return path, {}
-    return path, dict((yaml.safe_load(path.read_text()) or {}).get(env_id, {}))
-
-
-def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
-    """TwoStageSAC keywords of ``env_id`` from ``zoo_configs/two_stage_sac.yml`` (the same values the zoo trains with;
-    ``policy``, ``n_timesteps`` and ``callback`` left out); ``{}`` when the file or the block is missing. The block's
-    callbacks are :func:`zoo_dagger`'s, which refuses any the experiments do not run (``learn`` and the table run its
-    DAgger; ``bench``, ``diagnose`` and the demo measure the TwoStageSAC steps alone)."""
-    path, block = _zoo_block(env_id, path)
-    zoo_dagger(env_id, path)
-    for key in ("policy", "n_timesteps", "callback"):
-        block.pop(key, None)
-    return block
-
-
-def zoo_dagger(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
-    """Keywords of the :class:`~sb3_taskalloc.SelectDAggerCallback` in ``env_id``'s ``callback`` entry of
-    ``zoo_configs/two_stage_sac.yml`` (rl-zoo3's key; ``python -m sb3_taskalloc.zoo`` runs it when training ends), with
-    the callback's defaults filled in and ``seed`` left out; ``{}`` when the block has none. The experiments run it as
-    their DAgger phase after the training steps. Any other callback, a second DAgger entry or keywords the callback
-    refuses raise a ValueError naming the file and the block: an entry the experiments dropped would report a schedule
-    the zoo does not train."""
-    path, block = _zoo_block(env_id, path)
-    entries = block.get("callback") or []
-    dagger: dict[str, Any] = {}
-    for entry in entries if isinstance(entries, list) else [entries]:
-        name, kwargs = next(iter(entry.items())) if isinstance(entry, dict) and len(entry) == 1 else (entry, {})
-        where = f"{path}: the block of {env_id}"
-        if name != DAGGER_CALLBACK:
-            raise ValueError(
-                f"{where} has the callback {name!r}, which the experiments do not run (they run {DAGGER_CALLBACK} as "
-                "their DAgger phase); train with python -m sb3_taskalloc.zoo to run it"
-            )
-        if dagger:
-            raise ValueError(f"{where} has {DAGGER_CALLBACK} twice")
-        from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback
-
-        try:
-            callback = SelectDAggerCallback(**(kwargs or {}))
-        except (TypeError, ValueError) as error:
-            raise ValueError(f"{where}: {DAGGER_CALLBACK}: {error}") from error
-        if callback.seed is not None:
-            raise ValueError(f"{where}: {DAGGER_CALLBACK} sets a seed; the experiments seed each training seed's rollouts")
-        dagger = dict(callback.kwargs)
-    return dagger
-
-
-def over_zoo(env_id: str, overrides: dict[str, Any]) -> dict[str, Any]:
-    """The env's zoo hyperparameters (:func:`zoo_hyperparameters`) with ``overrides`` on top. The settings mappings
-    (``policy_kwargs``, ``select_kwargs``) merge key by key: overriding one policy keyword (``{policy_kwargs:
-    {hidden_dim: 128}}``) keeps the block's others (its ``rounds``, its rule), as overriding one algorithm keyword keeps
-    the rest of the block."""
-    return merge_settings(zoo_hyperparameters(env_id), overrides)
-
-
-def merge_settings(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-    """TwoStageSAC keywords ``overrides`` over ``base``; the settings mappings (``policy_kwargs``, ``select_kwargs``)
-    merge key by key."""
-    merged = {**base, **overrides}
-    for key in ("policy_kwargs", "select_kwargs"):
-        if isinstance(base.get(key), dict) and isinstance(overrides.get(key), dict):
-            merged[key] = {**base[key], **overrides[key]}
-    return merged
-
-
-def training_env(env_id: str, hyperparameters: dict[str, Any], seed: int) -> tuple[Any, dict[str, Any]]:
-    """The env TwoStageSAC trains on under zoo-style ``hyperparameters``, and the keywords left for TwoStageSAC: with
-    ``n_envs`` > 1 (rl-zoo3's key for vectorised collection) a VecEnv of that many copies seeded from ``seed``, else
-    the env id itself."""
-    kwargs = dict(hyperparameters)
-    n_envs = int(kwargs.pop("n_envs", 1))
-    if n_envs == 1:
-        return env_id, kwargs
-    from stable_baselines3.common.env_util import make_vec_env
-
-    return make_vec_env(env_id, n_envs=n_envs, seed=seed), kwargs
 
 
 def env_name(text: str) -> str:

@@ -22,6 +22,7 @@ from stable_baselines3.common.utils import set_random_seed
 from sb3_taskalloc.common.utils import atomic_path
 from sb3_taskalloc.experiments.plots import plot_incomes
 from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, load_worker_config, make_market
+from sb3_taskalloc.zoo_config import config_path
 
 
 class Manager(Protocol):
@@ -83,7 +84,7 @@ def co_train(
 
 
 #: The workers' DDPG settings by env id, beside the package in a source checkout.
-DEFAULT_CONF = Path(__file__).resolve().parents[2] / "zoo_configs" / "ddpg.yml"
+DEFAULT_CONF = config_path("ddpg.yml")
 
 
 def save_history(history: list[dict[str, float]], folder: Path, title: str) -> list[Path]:

@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import envs  # registers the TaskAlloc ids
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import zoo_hyperparameters
+    from sb3_taskalloc.zoo_config import zoo_hyperparameters
 
     th.set_num_threads(args.threads)
     out = Path(args.out)

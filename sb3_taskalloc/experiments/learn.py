@@ -36,12 +36,13 @@ from typing import Any
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments import evaluation, learn_report, reevaluate
-from sb3_taskalloc.experiments.budgets import config_key, env_settings, over_zoo, training_env, zoo_dagger
+from sb3_taskalloc.experiments.budgets import config_key, env_settings
 from sb3_taskalloc.experiments.evaluation import PLANNERS, Curve, eval_seeds, one_thread, validation_seeds
 
 # The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
 # validation (30,000 + 100·seed) and diagnosis episodes; SelectDAggerCallback rolls out the same episodes by default.
 from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback, dagger_seed
+from sb3_taskalloc.zoo_config import over_zoo, training_env, zoo_dagger
 
 
 @dataclass

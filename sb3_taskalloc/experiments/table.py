@@ -46,12 +46,10 @@ from sb3_taskalloc.experiments.budgets import (
     Method,
     config_key,
     env_settings,
-    merge_settings,
     row_env,
-    zoo_dagger,
-    zoo_hyperparameters,
 )
 from sb3_taskalloc.experiments.table_report import env_logs
+from sb3_taskalloc.zoo_config import merge_settings, zoo_dagger, zoo_hyperparameters
 
 
 def _slug(name: str) -> str:

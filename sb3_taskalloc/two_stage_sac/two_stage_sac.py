@@ -27,6 +27,7 @@ from sb3_taskalloc.two_stage_sac import updates as stage
 from sb3_taskalloc.two_stage_sac.decoding import DecodingMixin
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 from sb3_taskalloc.two_stage_sac.settings import check_select_kwargs, check_settings
+from sb3_taskalloc.zoo_config import from_zoo
 
 SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 
@@ -284,16 +285,29 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
 
     # ------------------------------------------------------------------ API
 
+    @classmethod
+    def from_zoo(cls: type[SelfTwoStageSAC], env_id: str, seed: int | None = None, **overrides: Any) -> SelfTwoStageSAC:
+        """The recommended configuration of ``env_id``: its block of the shipped zoo config (``n_envs`` copies of the
+        env, the tuned keywords, the block's budget as ``learn()``'s default, its DAgger run when ``learn`` ends);
+        ``overrides`` go over it (:func:`sb3_taskalloc.zoo_config.from_zoo`)."""
+        return from_zoo(cls, env_id, seed, **overrides)
+
     def learn(
         self: SelfTwoStageSAC,
-        total_timesteps: int = DEFAULT_TOTAL_TIMESTEPS,
+        total_timesteps: int | None = None,
         callback: MaybeCallback = None,
         log_interval: int = 4,
         tb_log_name: str = "TwoStageSAC",
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfTwoStageSAC:
-        """Train for ``total_timesteps`` env steps (default :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000)."""
+        """Train for ``total_timesteps`` env steps (default: the zoo block's budget for a model made by :meth:`from_zoo`,
+        else :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000); a :meth:`from_zoo` model also runs its block's callbacks."""
+        if total_timesteps is None:
+            total_timesteps = getattr(self, "zoo_n_timesteps", None) or DEFAULT_TOTAL_TIMESTEPS
+        zoo_callbacks = getattr(self, "zoo_callbacks", [])
+        if zoo_callbacks:
+            callback = [*zoo_callbacks, *(callback if isinstance(callback, list) else [callback] if callback else [])]
         if not (isinstance(total_timesteps, int | np.integer) and total_timesteps >= 0):
             raise ValueError(f"total_timesteps must be a non-negative integer, got {total_timesteps!r}")
         end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
@@ -405,7 +419,7 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         aliases = ["actor", "critic", "critic_target", "selector", "select_critic", "select_critic_target"]
-        return [*super()._excluded_save_params(), *aliases, "updates"]
+        return [*super()._excluded_save_params(), *aliases, "updates", "zoo_callbacks"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "selector.optimizer", "select_critic.optimizer"]

@@ -155,8 +155,8 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     ``--eval-every`` env steps; the evaluations are not counted in the time. One row per training seed and device."""
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.experiments.budgets import over_zoo, training_env
     from sb3_taskalloc.experiments.evaluation import episode_returns, eval_seeds
+    from sb3_taskalloc.zoo_config import over_zoo, training_env
 
     env_id = "TaskAlloc/RBF-v0"
     budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
