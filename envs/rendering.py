@@ -130,19 +130,42 @@ def save_gif(
         raise TypeError(f"policy must map an observation to an action or have predict(), got {type(policy).__name__}")
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
-    frames = [Image.fromarray(env.render())]  # type: ignore[arg-type]
+    frames = [captioned(env.render(), 0.0)]  # type: ignore[arg-type]
     total = 0.0
     for _ in range(max_steps):
         action = policy(obs) if policy is not None else random_valid_action(obs, rng)
         obs, reward, terminated, truncated, _ = env.step(action)
         total += float(reward)
-        frames.append(Image.fromarray(env.render()))  # type: ignore[arg-type]
+        frames.append(captioned(env.render(), total))  # type: ignore[arg-type]
         if terminated or truncated:
             break
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
     return path, total
+
+
+#: Height of the strip under each GIF frame that holds its legend and the return so far.
+CAPTION = 34
+
+
+def captioned(frame: np.ndarray, total: float) -> Image.Image:
+    """``frame`` with a strip below it: the legend of :func:`render_rgb`'s marks and the episode's return so far."""
+    height, width = frame.shape[:2]
+    img = Image.new("RGB", (width, height + CAPTION), (255, 255, 255))
+    img.paste(Image.fromarray(frame), (0, 0))
+    draw = ImageDraw.Draw(img)
+    y = height + 4
+    draw.rectangle([6, y + 1, 14, y + 9], outline=TASK_COLOR, width=2)
+    draw.text((18, y), "task (size: reward)", fill=(0, 0, 0))
+    draw.ellipse([140, y + 2, 146, y + 8], fill=ENTITY_FREE)
+    draw.text((150, y), "free", fill=(0, 0, 0))
+    draw.ellipse([190, y + 2, 196, y + 8], fill=ENTITY_BUSY)
+    draw.text((200, y), "committed", fill=(0, 0, 0))
+    draw.line([(272, y + 5), (290, y + 5)], fill=LINE_COLOR, width=2)
+    draw.text((294, y), "assignment", fill=(0, 0, 0))
+    draw.text((6, y + 15), f"return so far: {total:.1f}", fill=(0, 0, 0))
+    return img
 
 
 def random_valid_action(obs: dict[str, np.ndarray], rng: np.random.Generator) -> np.ndarray:

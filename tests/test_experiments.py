@@ -228,8 +228,12 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
         for read in (zoo_dagger, zoo_hyperparameters):
             with pytest.raises(ValueError, match=match):
                 read("TaskAlloc/RBF-v0", config)
-    assert zoo_dagger("TaskAlloc/EPT-v0", config) == {}
-    assert zoo_hyperparameters("TaskAlloc/EPT-v0", config) == {}
+    for read in (zoo_dagger, zoo_hyperparameters):  # a block the file lacks is an error, not another configuration
+        with pytest.raises(ValueError, match=r"has no block for 'TaskAlloc/EPT-v0'; it has \['TaskAlloc/RBF-v0'\]"):
+            read("TaskAlloc/EPT-v0", config)
+    with pytest.raises(FileNotFoundError, match="no zoo config at"):
+        zoo_hyperparameters("TaskAlloc/RBF-v0", tmp_path / "missing.yml")
+    assert zoo_dagger("TaskAlloc/EPT-v0") == {}  # the shipped EPT block has no DAgger
 
 
 def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):

@@ -147,7 +147,12 @@ def test_select_dagger_callback_defaults_are_distill_selects():
 
 def test_default_budget_documented():
     assert "20,000" in TwoStageSAC.learn.__doc__  # type: ignore[operator]
-    assert TwoStageSAC.learn.__defaults__[0] == DEFAULT_TOTAL_TIMESTEPS  # type: ignore[index]
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=DEFAULT_TOTAL_TIMESTEPS, policy_kwargs={"hidden_dim": 8}
+    )
+    model._setup_learn = lambda total_timesteps, *a, **k: pytest.fail(f"budget {total_timesteps}")  # type: ignore[method-assign]
+    with pytest.raises(pytest.fail.Exception, match=f"budget {DEFAULT_TOTAL_TIMESTEPS}"):
+        model.learn()
 
 
 def test_device_auto_is_cpu_or_cuda():
@@ -197,15 +202,15 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
     from sb3_taskalloc.experiments import demo
 
     demo.main(
-        ["--env", "TaskAlloc/MT-v0", "--steps", "40", "--n-envs", "2", "--eval-episodes", "1", "--eval-every", "20",
-         "--threads", "1", "--out", str(tmp_path)]
+        ["--env", "MT", "--steps", "40", "--n-envs", "2", "--eval-episodes", "1", "--eval-every", "20",
+         "--dagger-iterations", "1", "--dagger-episodes", "1", "--out", str(tmp_path)]
     )  # fmt: skip
     record = json.loads((tmp_path / "results.json").read_text())
-    assert [step for step, _ in record["eval_curve"]] == [20, 40]  # EvalCallback's deterministic evaluations, in env steps
+    # From step 0 (the untrained policy), then EvalCallback's deterministic evaluations, in env steps.
+    assert [step for step, _ in record["eval_curve"]] == [0, 20, 40]
     assert record["n_envs"] == 2 and len(list(tmp_path.glob("train/*.monitor.csv"))) == 2
-    assert (tmp_path / "evaluations.npz").stat().st_size > 0
-    assert record["env"] == "TaskAlloc/MT-v0" and record["steps"] == 40 and record["device"] in ("cpu", "cuda")
-    assert set(record["eval"]) == {"TwoStageSAC", "Greedy", "Random"}
+    assert record["env"] == "TaskAlloc/MT-v0" and record["steps"] == 40 and record["dagger_iterations"] == 1
+    assert set(record["eval"]) == {"TwoStageSAC", "TwoStageSAC untrained", "Greedy", "Random"}
     assert all(np.isfinite(mean) for mean, _ in record["eval"].values())
     for name in ("learning_curve.png", "episode.gif", "two_stage_sac.zip"):
         assert (tmp_path / name).stat().st_size > 0, name
