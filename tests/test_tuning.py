@@ -292,3 +292,26 @@ def test_outputs_go_next_to_the_journal(tmp_path, monkeypatch):
     runner.main(args)
     assert (store / "s" / "trials.csv").exists() and (store / "s" / "best.yml").exists()
     assert list(elsewhere.iterdir()) == []
+
+
+def test_studies_are_reproducible_and_evaluate_every_trial_on_the_same_episodes(tmp_path, monkeypatch):
+    """A study's sampler seed follows from --seed and the study's state (no process id): the same command on a new
+    study proposes the same first trial. Every evaluation reseeds the evaluation env at the same seed, so trials are
+    compared on the same episodes. The evaluation settings are part of the study's identity."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    seeds: list[int | None] = []
+
+    original = DummyVecEnv.seed
+    monkeypatch.setattr(DummyVecEnv, "seed", lambda self, s=None: seeds.append(s) or original(self, s))
+    runs = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        runner.main(worker_args(tmp_path / name, 1))
+        runs.append(load(tmp_path / name).trials[0].params)
+    assert runs[0] == runs[1]
+    assert seeds.count(runner.EVAL_SEED) >= 4  # 2 evaluations per trial, 2 studies
+    args = worker_args(tmp_path / "a", 2)
+    args[args.index("--eval-episodes") + 1] = "2"
+    with pytest.raises(SystemExit, match=r"other settings \(eval_episodes"):
+        runner.main(args)

@@ -52,6 +52,9 @@ from sb3_taskalloc.experiments.budgets import full_env_id
 from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
 from tuning.storage import journal_path, make_storage
 
+#: Reset seed of the evaluation episodes (disjoint from the training seeds, which start at ``--seed``).
+EVAL_SEED = 90_000
+
 #: Trial states that count towards ``--n-trials``.
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
 
@@ -84,6 +87,7 @@ class TrialEvalCallback(EvalCallback):
 
     def _on_step(self) -> bool:
         if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
+            self.eval_env.seed(EVAL_SEED)  # every evaluation of every trial on the same episodes
             super()._on_step()
             self.eval_idx += 1
             if not math.isfinite(self.last_mean_reward):
@@ -155,12 +159,14 @@ def search_space() -> dict[str, str]:
 
 
 def check_study_settings(study: optuna.Study, args: argparse.Namespace) -> None:
-    """Record the study's env, env keywords, trial budget and search space on its first run, and refuse to resume it
-    with other ones: trials of another env or budget would be compared as if they were alike."""
+    """Record the study's env, env keywords, trial budget, evaluation settings and search space on its first run, and
+    refuse to resume it with other ones: trials of another env, budget or evaluation would be compared as if alike."""
     settings = {
         "env": args.env,
         "env_kwargs": args.env_kwargs or {},
         "n_timesteps": args.n_timesteps,
+        "eval_episodes": args.eval_episodes,
+        "n_evaluations": args.n_evaluations,
         "search_space": search_space(),
     }
     recorded = study.user_attrs.get("settings")  # one attribute: workers starting together never see half of it
@@ -172,7 +178,8 @@ def check_study_settings(study: optuna.Study, args: argparse.Namespace) -> None:
         shown = {key: (recorded or {}).get(key, "not recorded") for key in differ if key != "search_space"}
         raise ValueError(
             f"study {study.study_name!r} was run with other settings ({', '.join(differ)}; recorded: {shown}): "
-            "resume it with the same --env, --env-kwargs and --n-timesteps, or choose another --study-name"
+            "resume it with the same --env, --env-kwargs, --n-timesteps, --eval-episodes and --n-evaluations, or choose "
+            "another --study-name"
         )
 
 
@@ -220,13 +227,14 @@ def open_study(args: argparse.Namespace) -> optuna.Study:
         storage=make_storage(args.storage, args.study_name, args.out, args.heartbeat_interval, args.heartbeat_grace),
         direction="maximize",
         load_if_exists=True,
-        # Each worker's sampler gets its own seed: workers seeded alike would propose the same parameters.
-        sampler=optuna.samplers.TPESampler(
-            n_startup_trials=args.n_startup_trials, seed=args.seed * 1_000_003 + os.getpid(), multivariate=True
-        ),
+        sampler=optuna.samplers.TPESampler(n_startup_trials=args.n_startup_trials, seed=args.seed, multivariate=True),
         pruner=optuna.pruners.MedianPruner(n_startup_trials=args.n_startup_trials, n_warmup_steps=args.n_evaluations // 3),
     )
     check_study_settings(study, args)
+    # The sampler's seed follows from --seed and the trials the study holds when the worker joins: a worker started
+    # again on the same study state proposes the same parameters, and workers that join later propose others.
+    seed = args.seed * 1_000_003 + len(study.trials)
+    study.sampler = optuna.samplers.TPESampler(n_startup_trials=args.n_startup_trials, seed=seed, multivariate=True)
     return study
 
 

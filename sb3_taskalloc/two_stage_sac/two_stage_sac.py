@@ -6,7 +6,6 @@ import io
 import pathlib
 import warnings
 from collections import defaultdict
-from collections.abc import Callable
 from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
@@ -332,24 +331,12 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         if not self.policy.preassign:
             raise ValueError("distill_select needs a pre-assigning policy: without pre-assignment the tasks share one pool")
 
-    def distill_select(
-        self,
-        env: GymEnv | str,
-        iterations: int = 4,
-        episodes: int = 10,
-        epochs: int = 8,
-        learning_rate: float = 1e-3,
-        batch_size: int = 32,
-        imitation: str = "sequence",
-        seed: int | None = None,
-        progress_bar: bool = False,
-        callback: Callable[[dict[str, float]], bool | None] | None = None,
-    ) -> list[dict[str, float]]:
-        """Teach the pointer the exact most profitable cover of its candidates by DAgger (implementation detail 19);
-        see :func:`.dagger.distill_select` for the arguments and what it returns."""
-        return dagger.distill_select(
-            self, env, iterations, episodes, epochs, learning_rate, batch_size, imitation, seed, progress_bar, callback
-        )
+    def distill_select(self, env: GymEnv | str, **kwargs: Any) -> list[dict[str, float]]:
+        """Teach the pointer the exact most profitable cover of its candidates by DAgger (implementation detail 19):
+        :func:`.dagger.distill_select` on this model, whose keywords (``iterations``, ``episodes``, ``epochs``,
+        ``learning_rate``, ``batch_size``, ``imitation``, ``seed``, ``progress_bar``, ``callback``) it takes; returns
+        each iteration's figures."""
+        return dagger.distill_select(self, env, **kwargs)
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach an env. With a size-agnostic policy the env may have other entity/task counts (zero-shot transfer):
