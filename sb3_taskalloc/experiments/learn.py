@@ -295,8 +295,7 @@ class LearnRun:
         return learn_report.write(self, records)
 
     def zero_shot(self, shift: str) -> Path:
-        """Each finished seed's trained model on another env without training (``shift``, e.g. ``"RBF-EntityShift"``);
-        see :func:`.reevaluate.reevaluate`. :return: the Markdown path."""
+        """Each finished seed's trained model on the env ``shift`` (e.g. ``"RBF-EntityShift"``) without training."""
         return reevaluate.reevaluate(self, shift)
 
     def reevaluate(
