@@ -232,3 +232,13 @@ def test_zoo_train_uses_the_shipped_config_by_default(monkeypatch):
     zoo.main(["train", "--algo", "two_stage_sac", "--env", "TaskAlloc/RBF-v0"])
     assert seen[0][seen[0].index("--conf-file") + 1] == str(config_path("two_stage_sac.yml"))
     assert config_path("two_stage_sac.yml").is_file() and config_path("ddpg.yml").is_file()
+
+
+def test_dagger_without_pre_assignment_is_refused_before_training(monkeypatch, capsys):
+    from sb3_taskalloc.experiments import __main__ as experiments
+    from sb3_taskalloc.experiments.learn import LearnRun
+
+    monkeypatch.setattr(LearnRun, "run", lambda *a, **k: pytest.fail("trained before the arguments were checked"))
+    with pytest.raises(SystemExit):
+        experiments.main(["learn", "--env", "RBF", "--algo-kwargs", "{policy_kwargs: {preassign: false}}"])
+    assert "with preassign: false give --select-dagger 0" in capsys.readouterr().err

@@ -209,6 +209,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
                    first_seed=args.first_seed, device=args.device)  # fmt: skip
     if args.steps < (0 if run.select_dagger else 1):  # 0 steps: DAgger alone, from the initial rule
         parser.error(f"--steps must be >= 1 (>= 0 with --select-dagger), got {args.steps}")
+    if run.select_dagger and not run.hyperparameters.get("policy_kwargs", {}).get("preassign", True):
+        parser.error("DAgger teaches the pointer of a pre-assigning policy: with preassign: false give --select-dagger 0")
     try:  # before any training
         run.check_more_episodes(args.more_episodes)
     except ValueError as error:
