@@ -242,3 +242,11 @@ def test_dagger_without_pre_assignment_is_refused_before_training(monkeypatch, c
     with pytest.raises(SystemExit):
         experiments.main(["learn", "--env", "RBF", "--algo-kwargs", "{policy_kwargs: {preassign: false}}"])
     assert "with preassign: false give --select-dagger 0" in capsys.readouterr().err
+
+
+def test_a_rerun_of_the_workers_leaves_no_stale_figures(tmp_path):
+    from sb3_taskalloc.experiments.cotrain import save_history
+
+    history = [{"manager_income": 1.0, "worker_income": 2.0, "total_income": 3.0, "mean_bid": 0.2, "picked_bids": 4.0}]
+    assert {p.name for p in save_history(history, tmp_path, "t")} == {"incomes.csv", "incomes.png"}
+    assert save_history([], tmp_path, "t") == [] and not list(tmp_path.glob("incomes.*"))

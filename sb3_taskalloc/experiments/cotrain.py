@@ -89,12 +89,15 @@ DEFAULT_CONF = config_path("ddpg.yml")
 
 def save_history(history: list[dict[str, float]], folder: Path, title: str) -> list[Path]:
     """Write ``incomes.csv`` and ``incomes.png`` (manager, worker and total income per episode, the paper's RBF
-    figure f, with the workers' mean bid on a second axis) when at least one episode ended.
+    figure f, with the workers' mean bid on a second axis) when at least one episode ended; otherwise remove those of an
+    earlier run in ``folder``.
 
     :return: the files written (none without a finished episode)
     """
     folder.mkdir(parents=True, exist_ok=True)
-    if not history:
+    if not history:  # an earlier run's figures beside this run's models would describe another run
+        for name in ("incomes.csv", "incomes.png"):
+            (folder / name).unlink(missing_ok=True)
         return []
     with atomic_path(folder / "incomes.csv") as tmp, tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["episode", *history[0]])
