@@ -131,7 +131,7 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
     ) -> None:
         n = len(entities)
         self.n_entities = n
-        self.max_entities = int(max_entities) if max_entities is not None else n
+        self.max_entities = max_entities if max_entities is not None else n
         self.max_tasks = int(max_tasks)
         check_config(
             entities, tasks, self.metadata["render_modes"], max_entities=self.max_entities, max_tasks=self.max_tasks,

@@ -42,6 +42,8 @@ def check_config(entities: EntityTable, tasks: TaskTable, render_modes: Sequence
     s = settings
     for name, bounds in RANGES.items():
         check_range(name, s[name], *bounds)
+    if isinstance(s["max_entities"], bool) or not isinstance(s["max_entities"], int | np.integer):
+        raise ValueError(f"max_entities must be an integer, got {s['max_entities']!r}")
     if s["max_entities"] < len(entities):
         raise ValueError(f"max_entities={s['max_entities']} is smaller than the {len(entities)} entities of the table")
     if s["grid_size"] is not None:
@@ -61,6 +63,28 @@ def check_config(entities: EntityTable, tasks: TaskTable, render_modes: Sequence
     if s["render_mode"] is not None and s["render_mode"] not in render_modes:
         raise ValueError(f"render_mode must be one of {list(render_modes)}, got {s['render_mode']!r}")
     check_grid(entities, tasks, s["travel"], s["grid_size"])
+    check_bounds(entities, tasks, s)
+
+
+def check_bounds(entities: EntityTable, tasks: TaskTable, s: dict[str, Any]) -> None:
+    """Raise ``ValueError`` where the settings would give observations above the observation space's bound
+    (:data:`~envs.layout.FEATURE_HIGH`): scaled task rewards and demands, and the pair costs of the farthest trip."""
+    from envs.layout import FEATURE_HIGH
+
+    largest = {
+        "task reward × reward_scale × (1 + demand_noise)": float(tasks.rows.max())
+        * s["reward_scale"]
+        * (1 + s["demand_noise"]),
+        "entity cost + travel_cost × the grid's largest distance": float(entities.cost.max())
+        + s["travel_cost"] * 2 * max((s["grid_size"] or 1) - 1, 0),
+        "bid_max": s["bid_max"] or 0.0,
+    }
+    for what, value in largest.items():
+        if not value <= FEATURE_HIGH:
+            raise ValueError(
+                f"these settings give observations up to {value:.3g} ({what}), above the observation space's bound "
+                f"{FEATURE_HIGH:g}: lower reward_scale, travel_cost or the table's values"
+            )
 
 
 def check_grid(entities: EntityTable, tasks: TaskTable, travel: str, grid_size: int | None) -> None:

@@ -250,3 +250,16 @@ def test_a_rerun_of_the_workers_leaves_no_stale_figures(tmp_path):
     history = [{"manager_income": 1.0, "worker_income": 2.0, "total_income": 3.0, "mean_bid": 0.2, "picked_bids": 4.0}]
     assert {p.name for p in save_history(history, tmp_path, "t")} == {"incomes.csv", "incomes.png"}
     assert save_history([], tmp_path, "t") == [] and not list(tmp_path.glob("incomes.*"))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"reward_scale": 1e5}, r"observations up to .* \(task reward × reward_scale"),
+        ({"travel_cost": 1e6}, r"observations up to .* \(entity cost \+ travel_cost"),
+        ({"max_entities": float("nan")}, "max_entities must be an integer, got nan"),
+    ],
+)
+def test_env_settings_that_leave_the_observation_space_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        gym.make("TaskAlloc/RBF-v0", **kwargs)
