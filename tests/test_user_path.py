@@ -263,3 +263,26 @@ def test_a_rerun_of_the_workers_leaves_no_stale_figures(tmp_path):
 def test_env_settings_that_leave_the_observation_space_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         gym.make("TaskAlloc/RBF-v0", **kwargs)
+
+
+def test_unclear_tracebacks_became_messages(tmp_path, capsys):
+    """A missing model file, a model of another algorithm, malformed YAML on a command line and zero seeds each give a
+    message naming what is wrong."""
+    from sb3_contrib import MaskablePPO
+
+    from sb3_taskalloc.experiments import __main__ as experiments
+
+    with pytest.raises(FileNotFoundError, match=r"no saved model at \S*nothing \(nor \.zip\)"):
+        TwoStageSAC.load(tmp_path / "nothing")
+    MaskablePPO("MultiInputPolicy", gym.make("TaskAlloc/Almighty-v0"), n_steps=16, batch_size=16).save(tmp_path / "ppo.zip")
+    with pytest.raises(
+        ValueError, match="holds a model with a MaskableMultiInputActorCriticPolicy policy, not a TwoStageSAC model"
+    ):
+        TwoStageSAC.load(tmp_path / "ppo.zip")
+    for argv, match in (
+        (["learn", "--env", "RBF", "--algo-kwargs", "{tau: [0.05"], "not valid YAML"),
+        (["almighty", "--seeds", "0"], "--seeds, --steps and --every must be >= 1"),
+    ):
+        with pytest.raises(SystemExit):
+            experiments.main(argv)
+        assert match in capsys.readouterr().err

@@ -40,7 +40,7 @@ def check_saved_model(path: str | pathlib.Path, required: Sequence[str]) -> None
     """
     found = next((p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file()), None)
     if found is None:
-        return  # SB3 reports the missing file
+        raise FileNotFoundError(f"no saved model at {path}" + ("" if str(path).endswith(".zip") else " (nor .zip)"))
     if not zipfile.is_zipfile(found):
         raise ValueError(f"{found} is not a saved model (not a zip file: truncated, or another kind of file)")
     with zipfile.ZipFile(found) as archive:

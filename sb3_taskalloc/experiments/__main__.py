@@ -155,6 +155,8 @@ def main(argv: list[str] | None = None) -> None:
 def _almighty(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     from sb3_taskalloc.experiments.almighty import almighty_figure
 
+    if min(args.seeds, args.steps, args.every) < 1:
+        parser.error("--seeds, --steps and --every must be >= 1")
     print(f"wrote {almighty_figure(args.seeds, args.steps, args.every, args.out)}")
 
 

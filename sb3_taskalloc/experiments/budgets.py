@@ -140,7 +140,10 @@ def yaml_mapping(text: str) -> dict[str, Any]:
 
     import yaml
 
-    value = yaml.safe_load(text)
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise argparse.ArgumentTypeError(f"not valid YAML: {text!r} ({str(error).splitlines()[0]})") from None
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(f"expected a YAML mapping, got {text!r}")
     return value

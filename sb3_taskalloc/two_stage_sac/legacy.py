@@ -131,6 +131,14 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
     :return: the replaced items of ``data`` (``custom_objects`` of SB3's ``load``), the attributes to add (its
         ``**kwargs``) and the decoding strategy of its decision-time keywords (None: the argmax)
     """
+    policy_class = data.get("policy_class")
+    if isinstance(policy_class, type) and policy_class.__name__ != "TAMPolicy" and "TAMPolicy" not in {
+        c.__name__ for c in policy_class.__mro__
+    }:
+        raise ValueError(
+            f"this file holds a model with a {policy_class.__name__} policy, not a TwoStageSAC model: load it with its "
+            "own algorithm class"
+        )
     policy_kwargs = dict(data.get("policy_kwargs") or {})
     removed = {k: policy_kwargs[k] for k in REMOVED_ARCHITECTURES if k in policy_kwargs}
     if any(v != REMOVED_ARCHITECTURES[k] for k, v in removed.items()):
