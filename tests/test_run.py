@@ -139,10 +139,12 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
 
 def test_select_dagger_callback_defaults_are_distill_selects():
     """The callback's keywords default to ``distill_select``'s, so a schedule written either way is the same DAgger."""
-    parameters = inspect.signature(TwoStageSAC.distill_select).parameters
+    from sb3_taskalloc.two_stage_sac import dagger
+
+    parameters = inspect.signature(dagger.distill_select).parameters
     defaults = SelectDAggerCallback().kwargs
     assert defaults == {name: parameters[name].default for name in defaults}
-    assert set(parameters) - set(defaults) == {"self", "env", "seed", "progress_bar", "callback"}
+    assert set(parameters) - set(defaults) == {"model", "env", "seed", "progress_bar", "callback"}
 
 
 def test_default_budget_documented():
