@@ -315,3 +315,18 @@ def test_studies_are_reproducible_and_evaluate_every_trial_on_the_same_episodes(
     args[args.index("--eval-episodes") + 1] = "2"
     with pytest.raises(SystemExit, match=r"other settings \(eval_episodes"):
         runner.main(args)
+
+
+def test_a_running_worker_recovers_a_dead_workers_trial(tmp_path):
+    """A worker that dies mid-trial leaves it RUNNING; a worker still running waits for its heartbeat to go stale, fails
+    it, runs its parameters again and ends with every trial of the study finished (it used to end one short)."""
+    runner.main(worker_args(tmp_path, 1))  # the study, with its settings recorded
+    study = load(tmp_path)
+    dead = study.ask()  # the dead worker's trial: a heartbeat now, never again
+    dead.set_user_attr("heartbeat", time.time())
+    runner.main(worker_args(tmp_path, 3))
+    study = load(tmp_path)
+    states = [t.state for t in study.trials]
+    assert sum(s in runner.FINISHED for s in states) == 3
+    assert study.trials[dead.number].state == optuna.trial.TrialState.FAIL
+    assert any(t.user_attrs.get("retry_of") == dead.number for t in study.trials)

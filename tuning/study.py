@@ -135,6 +135,13 @@ class Heartbeat:
         self._thread.join()
 
 
+def _fail_stale(study: optuna.Study) -> list[int]:
+    """RDB storage: Optuna's own heartbeat check fails the stale trials and its callback retries them."""
+    before = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
+    optuna.storages.fail_stale_trials(study)
+    return sorted(before - {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))})
+
+
 def recover_stale_trials(study: optuna.Study, grace_period: float) -> list[int]:
     """Fail the running trials whose last heartbeat is older than ``grace_period`` seconds (their worker died, on any
     host) and queue their parameters again. :return: the numbers of the trials failed."""
@@ -242,17 +249,21 @@ def run_worker(args: argparse.Namespace) -> optuna.Study:
     """Run trials until the study holds ``args.n_trials`` finished trials; :return: the study."""
     study = open_study(args)
     journal = args.storage is None or "://" not in args.storage
-    if journal:
-        recovered = recover_stale_trials(study, args.heartbeat_grace)
+    while count(study, FINISHED) < args.n_trials:
+        # Live recovery: a worker that died mid-trial leaves it RUNNING; once its heartbeat is stale it is failed and
+        # its parameters queued again, by whichever worker looks first, at start or between its trials.
+        recovered = recover_stale_trials(study, args.heartbeat_grace) if journal else _fail_stale(study)
         if recovered:
             print(f"re-queued the trials of dead workers: {recovered}")
-    while count(study, (*FINISHED, TrialState.RUNNING)) < args.n_trials:
+        if count(study, (*FINISHED, TrialState.RUNNING)) >= args.n_trials:
+            time.sleep(args.heartbeat_interval)  # the other workers' trials finish, or go stale and are recovered
+            continue
         trial = study.ask()
         # Another worker may have started the last trial between the check and ask(): this one would be surplus.
         if count(study, (*FINISHED, TrialState.RUNNING), below=trial.number) >= args.n_trials:
             trial.set_user_attr("surplus", True)
             study.tell(trial, state=TrialState.FAIL)
-            break
+            continue  # wait for the other worker's trial (or recover it, should that worker die)
         try:
             if journal:
                 with Heartbeat(trial, args.heartbeat_interval):
