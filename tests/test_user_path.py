@@ -157,6 +157,7 @@ def test_a_budget_within_the_warm_up_is_announced():
         ({"target_entropy_ratio": -0.1}, "target_entropy_ratio must be a finite number >= 0"),
         ({"learning_rate": float("inf")}, "learning_rate must be a finite number >= 0"),
         ({"learning_starts": -1}, "learning_starts must be an integer ≥ 0"),
+        ({"replay_buffer_class": dict}, "replay_buffer_class must be TwoStageReplayBuffer or a subclass"),
     ],
 )
 def test_numeric_settings_are_range_checked_at_construction_and_at_load(tmp_path, kwargs, match):
@@ -286,3 +287,15 @@ def test_unclear_tracebacks_became_messages(tmp_path, capsys):
         with pytest.raises(SystemExit):
             experiments.main(argv)
         assert match in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("policy_kwargs", "match"),
+    [
+        ({"n_attention_layers": -1}, "n_attention_layers must be an integer ≥ 0"),
+        ({"activation_fn": "relu"}, "activation_fn must be a torch.nn.Module class"),
+    ],
+)
+def test_bad_policy_settings_are_named(policy_kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=policy_kwargs)

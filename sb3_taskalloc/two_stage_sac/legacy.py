@@ -132,9 +132,11 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
         ``**kwargs``) and the decoding strategy of its decision-time keywords (None: the argmax)
     """
     policy_class = data.get("policy_class")
-    if isinstance(policy_class, type) and policy_class.__name__ != "TAMPolicy" and "TAMPolicy" not in {
-        c.__name__ for c in policy_class.__mro__
-    }:
+    if (
+        isinstance(policy_class, type)
+        and policy_class.__name__ != "TAMPolicy"
+        and "TAMPolicy" not in {c.__name__ for c in policy_class.__mro__}
+    ):
         raise ValueError(
             f"this file holds a model with a {policy_class.__name__} policy, not a TwoStageSAC model: load it with its "
             "own algorithm class"

@@ -161,6 +161,9 @@ class TAMPolicy(BasePolicy):
         choices = {"task_order": (task_order, ("sequential", "random")), "encoder": (encoder, tuple(ENCODERS))}
         check_choices({**choices, "mixer": (mixer, tuple(MIXERS))})
         check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds))
+        check_counts(dict(n_attention_layers=n_attention_layers), minimum=0)
+        if not (isinstance(activation_fn, type) and issubclass(activation_fn, nn.Module)):
+            raise ValueError(f"activation_fn must be a torch.nn.Module class such as nn.ReLU, got {activation_fn!r}")
         check_bools(dict(pair_features=pair_features, preassign=preassign, heuristic_init=heuristic_init))
         self.mixer_kwargs = settings_over("mixer_kwargs", mixer_kwargs, MIXER_DEFAULTS)
         check_bools({f"mixer_kwargs[{k!r}]": v for k, v in self.mixer_kwargs.items()})

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from sb3_taskalloc.common.buffers import TwoStageReplayBuffer
 from sb3_taskalloc.common.utils import check_bools, check_choices, check_counts, check_finite, settings_over
 
 if TYPE_CHECKING:
@@ -78,3 +79,6 @@ def check_settings(model: TwoStageSAC) -> None:
     if not callable(model.learning_rate):  # 0 is allowed: rl-zoo3's enjoy loads a model with it, to evaluate
         check_finite({"learning_rate": model.learning_rate}, inclusive=True)
     check_select_kwargs(model.select_kwargs)
+    buffer = model.replay_buffer_class
+    if not (isinstance(buffer, type) and issubclass(buffer, TwoStageReplayBuffer)):
+        raise ValueError(f"replay_buffer_class must be TwoStageReplayBuffer or a subclass of it, got {buffer!r}")
