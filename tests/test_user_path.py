@@ -299,3 +299,35 @@ def test_unclear_tracebacks_became_messages(tmp_path, capsys):
 def test_bad_policy_settings_are_named(policy_kwargs, match):
     with pytest.raises(ValueError, match=match):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=policy_kwargs)
+
+
+def test_a_kill_during_a_save_leaves_no_lasting_temporary_file(tmp_path):
+    import os
+    import time
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=SMALL)
+    stale, fresh = tmp_path / ".m.abc.tmp.zip", tmp_path / ".m.def.tmp.zip"  # as a killed save leaves them
+    for path in (stale, fresh):
+        path.write_bytes(b"partial")
+    os.utime(stale, (time.time() - 7200, time.time() - 7200))
+    model.save(tmp_path / "m.zip")
+    assert not stale.exists() and fresh.exists()  # a recent one may be another process's save in progress
+
+
+def test_table_recomputes_a_model_whose_weights_are_damaged(tmp_path, capsys):
+    import zipfile
+
+    from sb3_taskalloc.experiments.table import METHODS, TableRun
+
+    run = TableRun("Almighty", 1, "smoke", tmp_path, progress=False)
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=SMALL)
+    path = tmp_path / "model.zip"
+    model.save(path)
+    with zipfile.ZipFile(path) as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, b"damaged" if name == "policy.pth" else data)
+    assert run._load_saved(METHODS["Ours"], path) is None
+    assert not path.exists() and len(list(tmp_path.glob("model.broken-*.zip"))) == 1
+    assert "could not be loaded" in capsys.readouterr().out

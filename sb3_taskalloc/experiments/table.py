@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import pickle
 import time
 import zipfile
 from collections.abc import Callable
@@ -285,7 +286,7 @@ class TableRun:
             return None
         try:
             return self._load(method, path)
-        except (ValueError, zipfile.BadZipFile, EOFError, KeyError) as error:
+        except (ValueError, zipfile.BadZipFile, EOFError, KeyError, RuntimeError, pickle.UnpicklingError) as error:
             aside = path.with_name(f"{path.stem}.broken-{time.strftime('%Y%m%d-%H%M%S')}.zip")
             os.replace(path, aside)
             print(f"warning: {path} could not be loaded ({error}); moved it to {aside} and computing it again")
