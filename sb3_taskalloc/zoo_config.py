@@ -20,6 +20,10 @@ def config_path(name: str) -> Path:
 DAGGER_CALLBACK = "sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback"
 
 
+#: Keys of a zoo block that are rl-zoo3's, not TwoStageSAC keywords.
+ZOO_ONLY = ("policy", "n_timesteps", "callback")
+
+
 def _zoo_block(env_id: str, path: str | Path | None) -> tuple[Path, dict[str, Any]]:
     """The config file read and ``env_id``'s block in it; a clear error when either is missing (a silent ``{}`` would
     train another configuration)."""
@@ -41,10 +45,8 @@ def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str
     callbacks are :func:`zoo_dagger`'s, which refuses any the experiments do not run (``learn`` and the table run its
     DAgger; ``bench``, ``diagnose`` and the demo measure the TwoStageSAC steps alone)."""
     path, block = _zoo_block(env_id, path)
-    zoo_dagger(env_id, path)
-    for key in ("policy", "n_timesteps", "callback"):
-        block.pop(key, None)
-    return block
+    _dagger_of(block, f"{path}: the block of {env_id}")
+    return {k: v for k, v in block.items() if k not in ZOO_ONLY}
 
 
 def zoo_dagger(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
@@ -55,11 +57,15 @@ def zoo_dagger(env_id: str, path: str | Path | None = None) -> dict[str, Any]:
     refuses raise a ValueError naming the file and the block: an entry the experiments dropped would report a schedule
     the zoo does not train."""
     path, block = _zoo_block(env_id, path)
+    return _dagger_of(block, f"{path}: the block of {env_id}")
+
+
+def _dagger_of(block: dict[str, Any], where: str) -> dict[str, Any]:
+    """:func:`zoo_dagger` of a block already read (``where`` names it in the errors)."""
     entries = block.get("callback") or []
     dagger: dict[str, Any] = {}
     for entry in entries if isinstance(entries, list) else [entries]:
         name, kwargs = next(iter(entry.items())) if isinstance(entry, dict) and len(entry) == 1 else (entry, {})
-        where = f"{path}: the block of {env_id}"
         if name != DAGGER_CALLBACK:
             raise ValueError(
                 f"{where} has the callback {name!r}, which the experiments do not run (they run {DAGGER_CALLBACK} as "
@@ -121,12 +127,12 @@ def from_zoo(cls: Any, env_id: str, seed: int | None = None, **overrides: Any) -
     """
     from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback
 
-    path, block = _zoo_block(env_id, None)
+    path, block = _zoo_block(env_id, None)  # read once: the keywords, the budget and the DAgger all come from it
+    dagger = _dagger_of(block, f"{path}: the block of {env_id}")
     n_timesteps = int(overrides.pop("n_timesteps", block.get("n_timesteps", 0)))
-    hyperparameters = merge_settings(zoo_hyperparameters(env_id), overrides)
+    hyperparameters = merge_settings({k: v for k, v in block.items() if k not in ZOO_ONLY}, overrides)
     env, kwargs = training_env(env_id, hyperparameters, 0 if seed is None else seed)
     model = cls("TAMPolicy", env, seed=seed, **kwargs)
     model.zoo_n_timesteps = n_timesteps or None
-    dagger = zoo_dagger(env_id, path)
     model.zoo_callbacks = [SelectDAggerCallback(**dagger)] if dagger else []
     return model

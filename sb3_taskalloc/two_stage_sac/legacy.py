@@ -22,6 +22,7 @@ from stable_baselines3.common.save_util import json_to_data
 
 from sb3_taskalloc.common.utils import with_default_suffix
 from sb3_taskalloc.two_stage_sac.decoding import Decoder, get_decoding_strategy
+from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
 
 #: The last commit whose library held the removed options.
 LAST_COMMIT = "632165d"
@@ -129,14 +130,11 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
     """What an old model's ``data`` needs to load today.
 
     :return: the replaced items of ``data`` (``custom_objects`` of SB3's ``load``), the attributes to add (its
-        ``**kwargs``) and the decoding strategy of its decision-time keywords (None: the argmax)
+        ``**kwargs``; the removed settings' attributes are dropped after loading, :func:`finish`) and the decoding
+        strategy of its decision-time keywords (None: the argmax)
     """
     policy_class = data.get("policy_class")
-    if (
-        isinstance(policy_class, type)
-        and policy_class.__name__ != "TAMPolicy"
-        and "TAMPolicy" not in {c.__name__ for c in policy_class.__mro__}
-    ):
+    if isinstance(policy_class, type) and not issubclass(policy_class, TAMPolicy):
         raise ValueError(
             f"this file holds a model with a {policy_class.__name__} policy, not a TwoStageSAC model: load it with its "
             "own algorithm class"
@@ -165,9 +163,6 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
             "decides as before, and further training runs without them",
             stacklevel=3,
         )
-    for key in (*REMOVED_TERMS, *REMOVED_COMPANIONS, *SELECT_KEYS):
-        if key in data:
-            custom[key] = None
     if decoder is not None:
         warnings.warn(
             f"this model was saved with a decision-time search among its policy keywords; it is now its decoding "
