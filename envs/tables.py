@@ -95,6 +95,10 @@ class EntityTable:
         if self.wire_cost is not None:
             self.wire_cost = np.asarray(self.wire_cost, dtype=np.float64).reshape(-1)
             _check_values("wire costs", self.wire_cost)
+        for name in ("positions", "wire_cost"):  # a shorter column would be zero-padded: entities at (0, 0), free wires
+            column = getattr(self, name)
+            if column is not None and len(column) != len(self.cost):
+                raise ValueError(f"entity {name} must have one row per entity ({len(self.cost)}), got {len(column)}")
 
     def __len__(self) -> int:
         return len(self.cost)

@@ -365,6 +365,10 @@ def test_degenerate_tables_are_named():
         (lambda: EntityTable(cost=[np.nan], supply=[[1.0]]), "entity costs must be finite"),
         (lambda: EntityTable(cost=[], supply=np.zeros((0, 1))), "entity table is empty"),
         (lambda: TaskAllocEnv(EntityTable([1.0], [[1.0]], positions=[[9, 0]]), tasks, grid_size=3), "on the grid"),
+        # a column shorter than the table was zero-padded (entities at (0, 0), free wires)
+        (lambda: EntityTable([1.0, 1.0], [[1.0], [1.0]], positions=[[1, 1]]), r"positions must have one row per entity \(2\)"),
+        (lambda: EntityTable([1.0, 1.0], [[1.0], [1.0]], wire_cost=[1.0]), r"wire_cost must have one row per entity \(2\)"),
+        (lambda: TaskTable(rows=[[3.0, 1.0], [3.0, 1.0]], positions=[[1, 1]]), "task positions must have one row per task"),
     ]
     for build, match in cases:
         with pytest.raises(ValueError, match=match):
