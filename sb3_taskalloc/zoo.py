@@ -67,6 +67,37 @@ def default_config(args: list[str]) -> Path:
     return path
 
 
+def _value(args: list[str], *names: str) -> str | None:
+    """The value after the first of ``names`` in rl-zoo3's arguments ``args``, or None."""
+    return next((args[i + 1] for i, a in enumerate(args[:-1]) if a in names), None)
+
+
+def check_block(args: list[str]) -> None:
+    """A clear error, before rl-zoo3 starts, for a YAML config whose ``--env`` block lacks the keys rl-zoo3 needs
+    (``policy``; ``n_timesteps`` unless ``-n`` gives it): rl-zoo3 stops at them with a bare ``KeyError`` or a
+    ``TypeError`` about a missing positional argument."""
+    import yaml
+
+    conf, env = _value(args, "--conf-file", "-conf"), _value(args, "--env")
+    if conf is None or env is None or not conf.endswith((".yml", ".yaml")) or not Path(conf).is_file():
+        return  # rl-zoo3's own messages cover these (a missing file, a Python config)
+    try:
+        with open(conf) as stream:  # the stream names the file in YAML's message
+            blocks = yaml.safe_load(stream) or {}
+    except yaml.YAMLError as error:
+        raise SystemExit(f"error: {conf} is not valid YAML: {error}") from None
+    block = blocks.get(env) if isinstance(blocks, dict) else None
+    if not isinstance(block, dict):
+        return  # rl-zoo3 names a missing block
+    n_given = int(_value(args, "-n", "--n-timesteps") or -1) > 0
+    missing = [key for key in ("policy", "n_timesteps") if key not in block and not (key == "n_timesteps" and n_given)]
+    if missing:
+        raise SystemExit(
+            f"error: {conf}: the block of {env} has no {' or '.join(missing)}, which rl-zoo3 needs "
+            "(policy: TAMPolicy; n_timesteps: N, or -n N on the command line)"
+        )
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run rl-zoo3's ``train`` or ``enjoy`` with the project's algorithms registered.
 
@@ -81,6 +112,8 @@ def main(argv: list[str] | None = None) -> None:
         rest += ["--gym-packages", "envs"]
     if command == "train" and not {"--conf-file", "-conf"} & set(rest):
         rest += ["--conf-file", str(default_config(rest))]
+    if command == "train":
+        check_block(rest)
     register(command)
     if command == "train":
         from rl_zoo3.train import train as run

@@ -204,9 +204,11 @@ def test_failed_replay_buffer_save_keeps_the_previous_buffer(tmp_path, monkeypat
     assert (tmp_path / "buffer.pkl").read_bytes() == before
 
 
-@pytest.mark.parametrize("content", ["truncated", "no_policy"])
+@pytest.mark.parametrize("content", ["truncated", "no_policy", "no_optimizer", "damaged_data"])
 def test_broken_save_is_named(tmp_path, content):
-    """A truncated zip, or one without ``policy.pth``, gets an error naming the file and what is wrong."""
+    """A truncated zip, one without ``policy.pth`` or an optimizer's state, or with its ``data`` cut, gets an error naming
+    the file and what is wrong (SB3 raised a bare ``KeyError`` or ``JSONDecodeError``); the weights of a save without
+    its optimizer state still load by the route the message names."""
     import zipfile
 
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, policy_kwargs={"hidden_dim": 16})
@@ -214,16 +216,29 @@ def test_broken_save_is_named(tmp_path, content):
     path = tmp_path / "model.zip"
     if content == "truncated":
         path.write_bytes(path.read_bytes()[:200])
-        match = "not a zip file"
     else:
         with zipfile.ZipFile(path) as z:
-            members = {n: z.read(n) for n in z.namelist() if n != "policy.pth"}
+            members = {n: z.read(n) for n in z.namelist()}
+        dropped = {"no_policy": "policy.pth", "no_optimizer": "selector.optimizer.pth"}.get(content)
+        members.pop(dropped, None)
+        if content == "damaged_data":
+            members["data"] = members["data"][: len(members["data"]) // 2]
         with zipfile.ZipFile(path, "w") as z:
             for name, data in members.items():
                 z.writestr(name, data)
-        match = "no policy.pth"
+    match = {
+        "truncated": "not a zip file",
+        "no_policy": "no policy.pth",
+        "no_optimizer": r"lacks saved state .*selector\.optimizer.*set_parameters\(path, exact_match=False\)",
+        "damaged_data": "damaged 'data' member",
+    }[content]
     with pytest.raises(ValueError, match=match):
         TwoStageSAC.load(path)
+    if content == "no_optimizer":
+        fresh = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=1, policy_kwargs={"hidden_dim": 16})
+        fresh.set_parameters(str(path), exact_match=False)
+        for name, tensor in model.policy.state_dict().items():
+            assert th.equal(tensor, fresh.policy.state_dict()[name]), name
 
 
 def test_replay_buffer_of_another_size_is_refused(tmp_path):

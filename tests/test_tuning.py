@@ -244,6 +244,26 @@ def test_damaged_or_foreign_journal_is_refused_untouched(tmp_path):
         runner.main(args)
 
 
+def test_unknown_journal_op_code_and_bad_storage_urls_are_named(tmp_path):
+    """A journal record of an operation this Optuna does not know stopped the replay with "AssertionError: Should not
+    reach."; an unknown URL scheme or a URL without ``//`` (which became a journal file in a folder ``sqlite:``) got
+    SQLAlchemy's plugin error or no error at all."""
+    journal = tmp_path / "s.log"
+    journal.write_text('{"op_code": 0, "worker_id": "w", "study_name": "s", "directions": [1]}\n{"op_code": 99}\n')
+    before = journal.read_text()
+    with pytest.raises(SystemExit, match="line 2 has the operation code 99"):
+        runner.main(worker_args(tmp_path, 1))
+    assert journal.read_text() == before
+    for url, match in [
+        ("foo://host/db", "'foo' is not a database SQLAlchemy knows"),
+        (f"sqlite:{tmp_path}/s.db", "looks like a URL without '//'"),
+    ]:
+        args = [a if a != str(journal) else url for a in worker_args(tmp_path, 1)]
+        with pytest.raises(SystemExit, match=match):
+            runner.main(args)
+    assert not Path("sqlite:").exists()
+
+
 def test_resuming_with_another_env_is_refused(tmp_path):
     runner.main(worker_args(tmp_path, 1))
     study = load(tmp_path)

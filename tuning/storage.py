@@ -4,12 +4,14 @@ URL with heartbeats."""
 from __future__ import annotations
 
 import json
+import re
 import time
 import warnings
 from pathlib import Path
 
 import optuna
 from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock, JournalFileSymlinkLock
+from optuna.storages.journal._storage import JournalOperation
 
 
 def repair_journal(path: Path, lock: JournalFileSymlinkLock | JournalFileOpenLock) -> Path | None:
@@ -35,12 +37,19 @@ def repair_journal(path: Path, lock: JournalFileSymlinkLock | JournalFileOpenLoc
             lines.append(tail)
         for number, line in enumerate(lines, 1):
             try:
-                json.loads(line)
+                record = json.loads(line)
             except (UnicodeDecodeError, json.JSONDecodeError):
                 raise ValueError(
                     f"{path} is not a readable Optuna journal{hint}: line {number} is not a JSON record; "
                     "nothing was written to it"
                 ) from None
+            op_code = record.get("op_code") if isinstance(record, dict) else None
+            if op_code not in OP_CODES:  # Optuna's replay would stop at it with "AssertionError: Should not reach."
+                raise ValueError(
+                    f"{path}: line {number} has the operation code {op_code!r}, which this Optuna "
+                    f"({optuna.__version__}) does not know (another version's journal, or not a journal); nothing was "
+                    "written to it"
+                )
         torn = None
         if tail:  # a record cut mid-write: keep its bytes aside, then cut it off
             torn = path.with_name(f"{path.name}.torn-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -50,6 +59,13 @@ def repair_journal(path: Path, lock: JournalFileSymlinkLock | JournalFileOpenLoc
         return torn
     finally:
         lock.release()
+
+
+#: The operation codes of Optuna's journal records.
+OP_CODES = frozenset(int(op) for op in JournalOperation)
+
+#: A storage argument that starts like a URL (``name:``) without the ``//`` that SQLAlchemy URLs have.
+_SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]+):(?!//)")
 
 
 def make_storage(
@@ -65,6 +81,7 @@ def make_storage(
     :param heartbeat_interval: seconds between heartbeats (RDB storage)
     :param grace_period: seconds without a heartbeat after which a running trial counts as dead (RDB storage)
     """
+    check_storage_url(url)
     if url is None or "://" not in url:
         path = journal_path(url, study_name, folder)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -88,6 +105,31 @@ def make_storage(
         except sqlalchemy.exc.IntegrityError:  # workers starting together race to create the schema: the loser retries
             time.sleep(0.5 * (attempt + 1))
     raise RuntimeError(f"could not open the study storage {url} (schema creation kept failing)")
+
+
+def check_storage_url(url: str | None) -> None:
+    """A clear error for a storage argument that is neither a journal path nor a URL Optuna's RDB storage can open (an
+    unknown scheme, a missing database driver, a URL without its ``//`` that would become a journal file)."""
+    if url is None:
+        return
+    if _SCHEME.match(url):
+        raise ValueError(f"storage {url!r} looks like a URL without '//' (sqlite:///PATH, postgresql://HOST/DB); a journal "
+                         "file is given by its path")  # fmt: skip
+    if "://" not in url:
+        return
+    import sqlalchemy
+    import sqlalchemy.exc
+
+    try:
+        sqlalchemy.create_engine(url).dispose()  # no connection yet: it checks the scheme and loads the driver
+    except sqlalchemy.exc.NoSuchModuleError:
+        scheme = url.split("://")[0]
+        raise ValueError(
+            f"storage {url!r}: {scheme!r} is not a database SQLAlchemy knows (sqlite:///PATH, postgresql://…, "
+            "mysql://…); a journal file is given by its path"
+        ) from None
+    except (ImportError, sqlalchemy.exc.ArgumentError) as error:
+        raise ValueError(f"storage {url!r} cannot be opened: {error}") from error
 
 
 def journal_path(url: str | None, study_name: str, folder: str) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import pathlib
 import zipfile
 from collections.abc import Iterable, Sequence
@@ -45,5 +46,17 @@ def check_saved_model(path: str | pathlib.Path, required: Sequence[str]) -> None
         raise ValueError(f"{found} is not a saved model (not a zip file: truncated, or another kind of file)")
     with zipfile.ZipFile(found) as archive:
         missing = sorted(set(required) - set(archive.namelist()))
-    if missing:
-        raise ValueError(f"{found} is not a complete saved model: it has no {', '.join(missing)}")
+        if missing:
+            raise ValueError(f"{found} is not a complete saved model: it has no {', '.join(missing)}")
+        if "data" in required:
+            try:
+                json.loads(archive.read("data"))
+            except (ValueError, zipfile.BadZipFile) as error:  # a cut or edited member: SB3 would raise a bare JSON error
+                raise ValueError(f"{found} has a damaged 'data' member (the model's settings): {error}") from error
+
+
+def saved_members(path: str | pathlib.Path) -> list[str]:
+    """The members of the saved model at ``path`` (or ``path.zip``), for messages about what a save lacks."""
+    found = next(p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file())
+    with zipfile.ZipFile(found) as archive:
+        return archive.namelist()

@@ -20,7 +20,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, pack_decision
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
-from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model
+from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model, saved_members
 from sb3_taskalloc.two_stage_sac import dagger, legacy
 from sb3_taskalloc.two_stage_sac import updates as stage
 from sb3_taskalloc.two_stage_sac.decoding import DecodingMixin
@@ -380,9 +380,16 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         if isinstance(path, str | pathlib.Path):
             check_saved_model(path, ("data", "policy.pth"))
             custom_objects, kwargs, decoder = legacy.load_arguments(path, custom_objects, kwargs)
-        model = super().load(
-            path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
-        )
+        try:
+            model = super().load(
+                path, env=None, device=device, custom_objects=custom_objects, print_system_info=print_system_info, **kwargs
+            )
+        except KeyError as error:  # SB3's fallback for old DQN saves hides its "parameters do not match" (the context)
+            states = [name.removesuffix(".pth") for name in saved_members(path) if name.endswith(".pth")]
+            raise ValueError(
+                f"{path} lacks saved state (it holds {states}; {error.__context__ or error}): it was edited or written "
+                "by another program. Its weights load into a new model with model.set_parameters(path, exact_match=False)"
+            ) from error
         legacy.finish(model, decoder)
         if env is not None:
             env = model._wrap_env(env, model.verbose)  # type: ignore[arg-type]
