@@ -103,17 +103,28 @@ def merge_settings(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str,
     return merged
 
 
-def training_env(env_id: str, hyperparameters: dict[str, Any], seed: int) -> tuple[Any, dict[str, Any]]:
+def training_env(
+    env_id: str, hyperparameters: dict[str, Any], seed: int, env_kwargs: dict[str, Any] | None = None
+) -> tuple[Any, dict[str, Any]]:
     """The env TwoStageSAC trains on under zoo-style ``hyperparameters``, and the keywords left for TwoStageSAC: with
     ``n_envs`` > 1 (rl-zoo3's key for vectorised collection) a VecEnv of that many copies seeded from ``seed``, else
-    the env id itself."""
+    the env id itself (or the env made with ``env_kwargs``)."""
     kwargs = dict(hyperparameters)
     n_envs = int(kwargs.pop("n_envs", 1))
     if n_envs == 1:
+        if env_kwargs:
+            import gymnasium as gym
+
+            return gym.make(env_id, **env_kwargs), kwargs
         return env_id, kwargs
     from stable_baselines3.common.env_util import make_vec_env
 
-    return make_vec_env(env_id, n_envs=n_envs, seed=seed), kwargs
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs), kwargs
+
+
+def zoo_block(env_id: str) -> dict[str, Any]:
+    """``env_id``'s whole block of the shipped ``two_stage_sac.yml`` (rl-zoo3's keys included), as rl-zoo3 reads it."""
+    return _zoo_block(env_id, None)[1]
 
 
 def from_zoo(cls: Any, env_id: str, seed: int | None = None, **overrides: Any) -> Any:

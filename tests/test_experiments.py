@@ -109,6 +109,51 @@ def test_resume_computes_only_missing_cells(smoke_tables):
     assert after[: len(kept)] == kept and len(after) == len(kept) + 1 and after[-1].startswith("Ours,few-shot (task),0,")
 
 
+def test_few_shot_cell_is_computed_again_identically(smoke_tables):
+    """Fine-tuning after ``load`` is seeded: a few-shot cell computed again (its model and its line gone) in another
+    process state gives the same value (it differed between identical runs)."""
+    cells = smoke_tables / "EPT" / "cells.csv"
+    before = cells.read_text().splitlines()
+    line = next(line for line in before if line.startswith("Ours,few-shot (entity),0,"))
+    from sb3_taskalloc import TwoStageSAC
+
+    model = next((smoke_tables / "EPT" / "models").glob("ours_s0_few_shot__entity_*.zip"))
+    first = TwoStageSAC.load(model).policy.state_dict()
+    model.unlink()
+    cells.write_text("\n".join(x for x in before if x != line) + "\n")
+    import torch as th
+
+    th.manual_seed(12345)  # another global random state than the fixture's process had
+    run_smoke(("EPT", str(smoke_tables)))
+    again = next(x for x in cells.read_text().splitlines() if x.startswith("Ours,few-shot (entity),0,"))
+    assert again.split(",")[3] == line.split(",")[3]
+    second = TwoStageSAC.load(model).policy.state_dict()
+    assert all(th.equal(first[name], second[name]) for name in first)  # the same fine-tuning, not only the same score
+
+
+def test_digests_cover_the_codes_defaults(tmp_path, monkeypatch):
+    """A changed code default (``RULE_LOGIT_SCALES``, a constructor default) files the Ours cells and the learning
+    experiment's seeds under a new digest (they reused every earlier result); other methods' cells keep theirs."""
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments import budgets
+    from sb3_taskalloc.experiments.learn import LearnRun
+    from sb3_taskalloc.two_stage_sac import policies
+
+    run = TableRun("RBF", 1, "smoke", tmp_path, progress=False)
+    learn = LearnRun(env="RBF", out=str(tmp_path))
+    before = run.cell_key("Ours", "train"), run.cell_key("Greedy", "train"), learn.key
+    for patch in (
+        lambda: monkeypatch.setattr(policies, "RULE_LOGIT_SCALES", (100.0, 20.0)),
+        lambda: monkeypatch.setattr(TwoStageSAC.__init__, "__defaults__", (1e-3, *TwoStageSAC.__init__.__defaults__[1:])),
+    ):
+        patch()
+        budgets.code_defaults.cache_clear()
+        after = run.cell_key("Ours", "train"), run.cell_key("Greedy", "train"), learn.key
+        assert after[0] != before[0] and after[1] == before[1] and after[2] != before[2]
+        monkeypatch.undo()
+    budgets.code_defaults.cache_clear()
+
+
 def test_resume_after_a_row_cut_mid_line(smoke_tables):
     """A kill while a cell is appended leaves a partial last line: the resume drops it and recomputes that cell."""
     cells = smoke_tables / "EPT" / "cells.csv"

@@ -33,6 +33,12 @@ FIXED = {
     "target_entropy_ratio": 0.2,
     "hidden_dim": 32,
     "n_attention_layers": 1,
+    "prior_coef": 0.1,
+    "select_prior_coef": 3.0,
+    "logit_scale": 100.0,
+    "select_logit_scale": 10.0,
+    "rounds": 2,
+    "select_search_coef": 10.0,
 }
 
 
@@ -41,10 +47,13 @@ def test_sampler_under_fixed_trial_builds_a_valid_model():
     kwargs = sample_two_stage_sac_params(trial, 25, 1, {})
     assert kwargs == convert_two_stage_sac_params(FIXED)
     assert (
-        kwargs["gamma"] == pytest.approx(0.98) and kwargs["batch_size"] == 16 and kwargs["select_kwargs"] == {"batch_size": 8}
+        kwargs["gamma"] == pytest.approx(0.98)
+        and kwargs["batch_size"] == 16
+        and kwargs["select_kwargs"] == {"prior_coef": 3.0, "search_coef": 10.0, "batch_size": 8, "search_samples": 32}
     )
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, **kwargs)
     assert model.policy.hidden_dim == 32 and model.policy.n_attention_layers == 1 and model.gamma == pytest.approx(0.98)
+    assert model.policy.rounds == 2 and model.select_kwargs["search_coef"] == 10.0
     model.learn(20)
     assert model._n_updates == 20
 

@@ -13,7 +13,9 @@ from typing import Any
 
 import optuna
 
-#: Raw search space (names are the trial's parameter names), shared by the sampler and the docs.
+#: Raw search space (names are the trial's parameter names), shared by the sampler and the docs. Beside SAC's own
+#: settings it holds the ones the learning experiment found to matter (docs/learning.md): the priors that hold each
+#: actor near its rule, the actors' inverse temperatures, the decision rounds and the team search's weight.
 SEARCH_SPACE = {
     "learning_rate": "log-uniform [3e-5, 3e-3]",
     "one_minus_gamma": "log-uniform [1e-3, 0.1] (γ = 1 − value)",
@@ -24,7 +26,17 @@ SEARCH_SPACE = {
     "target_entropy_ratio": "uniform [0.05, 0.6]",
     "hidden_dim": "{32, 64, 128}",
     "n_attention_layers": "{0, 1}",
+    "prior_coef": "log-uniform [0.01, 10] (β, the pre-assign actor's prior term)",
+    "select_prior_coef": "log-uniform [0.3, 30] (β_s, the pointer's prior term)",
+    "logit_scale": "log-uniform [10, 1000] (κ, the pre-assign actor's inverse temperature)",
+    "select_logit_scale": "log-uniform [1, 100] (κ_s, the pointer's)",
+    "rounds": "{1, 2, 4} (decision rounds)",
+    "select_search_coef": "{0, 10, 30} (λ_p, the team search's weight; 32 decodes when > 0)",
 }
+
+#: Trial parameters that are keywords of ``policy_kwargs`` and of ``select_kwargs`` (by their keyword).
+POLICY_PARAMS = ("hidden_dim", "n_attention_layers", "logit_scale", "select_logit_scale", "rounds")
+SELECT_PARAMS = {"select_prior_coef": "prior_coef", "select_search_coef": "search_coef"}
 
 
 def convert_two_stage_sac_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
@@ -39,9 +51,14 @@ def convert_two_stage_sac_params(sampled_params: dict[str, Any]) -> dict[str, An
         hyperparams["gamma"] = 1.0 - params.pop("one_minus_gamma")
     if "batch_size_pow" in params:
         hyperparams["batch_size"] = 2 ** int(params.pop("batch_size_pow"))
+    select_kwargs = {keyword: params.pop(name) for name, keyword in SELECT_PARAMS.items() if name in params}
     if "select_batch_size_pow" in params:
-        hyperparams["select_kwargs"] = {"batch_size": 2 ** int(params.pop("select_batch_size_pow"))}
-    policy_kwargs = {key: params.pop(key) for key in ("hidden_dim", "n_attention_layers") if key in params}
+        select_kwargs["batch_size"] = 2 ** int(params.pop("select_batch_size_pow"))
+    if select_kwargs.get("search_coef"):
+        select_kwargs["search_samples"] = 32
+    if select_kwargs:
+        hyperparams["select_kwargs"] = select_kwargs
+    policy_kwargs = {key: params.pop(key) for key in POLICY_PARAMS if key in params}
     if policy_kwargs:
         hyperparams["policy_kwargs"] = policy_kwargs
     hyperparams.update(params)
@@ -69,6 +86,12 @@ def sample_two_stage_sac_params(
         "target_entropy_ratio": trial.suggest_float("target_entropy_ratio", 0.05, 0.6),
         "hidden_dim": trial.suggest_categorical("hidden_dim", [32, 64, 128]),
         "n_attention_layers": trial.suggest_categorical("n_attention_layers", [0, 1]),
+        "prior_coef": trial.suggest_float("prior_coef", 0.01, 10.0, log=True),
+        "select_prior_coef": trial.suggest_float("select_prior_coef", 0.3, 30.0, log=True),
+        "logit_scale": trial.suggest_float("logit_scale", 10.0, 1000.0, log=True),
+        "select_logit_scale": trial.suggest_float("select_logit_scale", 1.0, 100.0, log=True),
+        "rounds": trial.suggest_categorical("rounds", [1, 2, 4]),
+        "select_search_coef": trial.suggest_categorical("select_search_coef", [0.0, 10.0, 30.0]),
     }
     hyperparams = convert_two_stage_sac_params(sampled)
     trial.set_user_attr("gamma", hyperparams["gamma"])

@@ -49,6 +49,7 @@ import envs  # noqa: F401  (registers the TaskAlloc/* ids)
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
 from sb3_taskalloc.experiments.budgets import full_env_id
+from sb3_taskalloc.zoo_config import merge_settings, training_env, zoo_block, zoo_hyperparameters
 from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
 from tuning.storage import journal_path, make_storage
 
@@ -175,6 +176,7 @@ def check_study_settings(study: optuna.Study, args: argparse.Namespace) -> None:
         "eval_episodes": args.eval_episodes,
         "n_evaluations": args.n_evaluations,
         "search_space": search_space(),
+        "zoo_block": zoo_block(args.env),  # what the trials train under the sampled settings
     }
     recorded = study.user_attrs.get("settings")  # one attribute: workers starting together never see half of it
     if recorded is None and not study.trials:
@@ -185,8 +187,8 @@ def check_study_settings(study: optuna.Study, args: argparse.Namespace) -> None:
         shown = {key: (recorded or {}).get(key, "not recorded") for key in differ if key != "search_space"}
         raise ValueError(
             f"study {study.study_name!r} was run with other settings ({', '.join(differ)}; recorded: {shown}): "
-            "resume it with the same --env, --env-kwargs, --n-timesteps, --eval-episodes and --n-evaluations, or choose "
-            "another --study-name"
+            "resume it with the same --env, --env-kwargs, --n-timesteps, --eval-episodes and --n-evaluations (and the "
+            "same zoo block and search space), or choose another --study-name"
         )
 
 
@@ -197,17 +199,19 @@ def objective(trial: optuna.Trial, args: argparse.Namespace) -> float:
     trial.set_user_attr("host", socket.gethostname())  # for reading the study; liveness is the heartbeat
     trial.set_user_attr("pid", os.getpid())
     env_kwargs = args.env_kwargs or {}
-    kwargs = sample_two_stage_sac_params(trial, 0, 1, {})
+    sampled = sample_two_stage_sac_params(trial, 0, 1, {})
     # A warm-up as long as the budget would train nothing: it takes at most half the budget.
-    kwargs["learning_starts"] = min(kwargs["learning_starts"], args.n_timesteps // 2)
-    trial.set_user_attr("learning_starts", kwargs["learning_starts"])
+    sampled["learning_starts"] = min(sampled["learning_starts"], args.n_timesteps // 2)
+    trial.set_user_attr("learning_starts", sampled["learning_starts"])
+    # The trial trains the env's zoo block (its n_envs, rule, held actor...) with the sampled settings over it, so the
+    # best trial's block (best.yml) trains as the trial did.
+    seed = args.seed + trial.number
+    env, kwargs = training_env(args.env, merge_settings(zoo_hyperparameters(args.env), sampled), seed, env_kwargs)
+    n_envs = env.num_envs if isinstance(env, VecEnv) else 1
     eval_env = Monitor(gym.make(args.env, **env_kwargs))
-    callback = TrialEvalCallback(
-        eval_env, trial, n_eval_episodes=args.eval_episodes, eval_freq=max(args.n_timesteps // args.n_evaluations, 1)
-    )
-    model = TwoStageSAC(
-        "TAMPolicy", gym.make(args.env, **env_kwargs), seed=args.seed + trial.number, device=args.device, **kwargs
-    )
+    every = max(args.n_timesteps // args.n_evaluations // n_envs, 1)  # in callback calls, each of n_envs env steps
+    callback = TrialEvalCallback(eval_env, trial, n_eval_episodes=args.eval_episodes, eval_freq=every)
+    model = TwoStageSAC("TAMPolicy", env, seed=seed, device=args.device, **kwargs)
     try:
         model.learn(args.n_timesteps, callback=callback)
     except (AssertionError, ValueError, RuntimeError, FloatingPointError) as error:  # divergence: a NaN loss or weight
@@ -313,8 +317,15 @@ def summarize(study: optuna.Study, env_id: str, folder: Path) -> dict[str, Any]:
         print("no completed trial yet")
         return {}
     best = convert_two_stage_sac_params(study.best_trial.params)
-    block = {env_id: {"policy": "TAMPolicy", **best}}
-    header = f"# Best of study {study.study_name!r}: trial {study.best_trial.number}, mean return {study.best_value:.4g}\n"
+    best["learning_starts"] = study.best_trial.user_attrs.get("learning_starts", best.get("learning_starts"))
+    # The env's zoo block with the best settings over it (the trials trained it): it replaces the block as it stands.
+    budget = study.user_attrs.get("settings", {}).get("n_timesteps")
+    block = {env_id: merge_settings({**zoo_block(env_id), "n_timesteps": budget}, best)}
+    header = (
+        f"# Best of study {study.study_name!r}: trial {study.best_trial.number}, mean return {study.best_value:.4g}; "
+        f"{env_id}'s zoo block with the trial's settings over it.\n# The trials measured the training steps: the "
+        "block's DAgger callback, if any, ran in none of them.\n"
+    )
     atomic_write_text(folder / "best.yml", header + yaml.safe_dump(block, sort_keys=False))
     if len(complete) >= 2:
         from optuna.importance import PedAnovaImportanceEvaluator

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 from dataclasses import asdict, dataclass, field
 from functools import cache
@@ -163,6 +164,30 @@ def config_key(*parts: Any) -> str:
     models are filed under it, so results of other settings are never mixed in."""
     text = json.dumps([asdict(p) if hasattr(p, "__dataclass_fields__") else p for p in parts], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+@cache
+def code_defaults() -> dict[str, Any]:
+    """What TwoStageSAC's code decides when a configuration leaves it unset: the constructor defaults of TwoStageSAC and
+    TAMPolicy and the module constants that shape the initial policy, the select stage and the exact covers. Part of a
+    TwoStageSAC result's digest, so a changed default (``RULE_LOGIT_SCALES``, say) files new results apart from old."""
+    from sb3_taskalloc import TAMPolicy, TwoStageSAC
+    from sb3_taskalloc.common import torch_layers
+    from sb3_taskalloc.two_stage_sac import policies, search, select_stage, settings
+
+    def defaults(function: Any) -> dict[str, Any]:
+        return {k: p.default for k, p in inspect.signature(function).parameters.items() if p.default is not p.empty}
+
+    constants = {
+        "HEURISTIC_INIT": policies.HEURISTIC_INIT,
+        "RULE_LOGIT_SCALES": policies.RULE_LOGIT_SCALES,
+        "MIXER_DEFAULTS": policies.MIXER_DEFAULTS,
+        "SELECT_DEFAULTS": settings.SELECT_DEFAULTS,
+        "COVER_TOL": select_stage.COVER_TOL,
+        "EXACT_LIMITS": (search.EXACT_NODE_LIMIT, search.EXACT_TIME_LIMIT),
+        "PAIR_FEATURE_NAMES": torch_layers.PAIR_FEATURE_NAMES,
+    }
+    return {"TwoStageSAC": defaults(TwoStageSAC.__init__), "TAMPolicy": defaults(TAMPolicy.__init__), **constants}
 
 
 @cache

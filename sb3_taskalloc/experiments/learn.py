@@ -36,7 +36,7 @@ from typing import Any
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments import evaluation, learn_report, reevaluate
-from sb3_taskalloc.experiments.budgets import config_key, env_settings
+from sb3_taskalloc.experiments.budgets import code_defaults, config_key, env_settings
 from sb3_taskalloc.experiments.evaluation import PLANNERS, Curve, eval_seeds, one_thread, validation_seeds
 
 # The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
@@ -145,6 +145,7 @@ class LearnRun:
                 settings += (("dagger_kwargs", self.dagger_kwargs),)
         if self.device != "cpu":  # appended only when set: the digests of CPU runs stay valid
             settings += (("device", self.device),)
+        settings += (("code", code_defaults()),)  # what the hyperparameters leave to the code's defaults
         return config_key(env_settings(self.env_id), self.hyperparameters, settings)
 
     def seed_path(self, seed: int) -> Path:

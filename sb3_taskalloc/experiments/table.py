@@ -45,6 +45,7 @@ from sb3_taskalloc.experiments.budgets import (
     SCRATCH_METHODS,
     Budget,
     Method,
+    code_defaults,
     config_key,
     env_settings,
     row_env,
@@ -122,6 +123,8 @@ class TableRun:
         settings: list[Any] = [method, env_settings(row_env(self.env, row)), steps, learner, budget.max_episode_steps, zoo]
         if dagger := self._dagger(method):  # appended only when set: the digests of runs without it stay valid
             settings.append(("dagger", dagger))
+        if method.kind == "sac":  # what the configuration leaves to the code's defaults changes the model too
+            settings.append(("code", code_defaults()))
         return settings
 
     def cell_key(self, name: str, row: str) -> str:
@@ -268,16 +271,29 @@ class TableRun:
             kwargs.pop("train_preassign_actor", None)
         return TwoStageSAC("TAMPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **kwargs)
 
-    def _load(self, method: Method, path: Path, env_id: str | None = None, log: Path | None = None) -> Any:
-        """The model saved at ``path``, with a training env of ``env_id`` logging to ``log`` when given."""
+    def _load(
+        self, method: Method, path: Path, env_id: str | None = None, log: Path | None = None, seed: int | None = None
+    ) -> Any:
+        """The model saved at ``path``, with a training env of ``env_id`` logging to ``log`` when given. With ``seed``
+        the env's first reset, the sampling and the network updates after loading are seeded (the few-shot training),
+        as a model built with that seed would be."""
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
         env = self._train_env(env_id, log, self._n_envs(method)) if env_id and log else None
+        if env is not None and seed is not None:
+            env = env if isinstance(env, VecEnv) else DummyVecEnv([lambda one=env: one])
+            env.seed(seed)  # the reset of ``load``'s set_env takes it
         if method.kind == "ppo":
             from sb3_contrib import MaskablePPO
 
-            return MaskablePPO.load(path, env=env)
-        from sb3_taskalloc import TwoStageSAC
+            model = MaskablePPO.load(path, env=env)
+        else:
+            from sb3_taskalloc import TwoStageSAC
 
-        return TwoStageSAC.load(path, env=env)
+            model = TwoStageSAC.load(path, env=env)
+        if seed is not None:
+            model.set_random_seed(seed)
+        return model
 
     def _load_saved(self, method: Method, path: Path) -> Any:
         """The model saved at ``path``, or None when there is none. A file that cannot be loaded (cut short by a crash
@@ -351,7 +367,7 @@ class TableRun:
         log = self._log_path(name, seed, row)
         tuned = self._load_saved(method, path)
         if tuned is None:
-            tuned = self._load(method, self._model_path(name, seed), env_id, log)
+            tuned = self._load(method, self._model_path(name, seed), env_id, log, seed=seed)
             tuned.learn(self.budget.steps(self.env, self.budget.few_shot_episodes), reset_num_timesteps=False)
             self._save(tuned, path)
         return f"{evaluate(tuned, env_id, budget, seed, method):.6g}"
