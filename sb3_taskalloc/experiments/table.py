@@ -281,12 +281,14 @@ class TableRun:
 
         env = self._train_env(env_id, log, self._n_envs(method)) if env_id and log else None
         if env is not None and seed is not None:
-            env = env if isinstance(env, VecEnv) else DummyVecEnv([lambda one=env: one])
+            if not isinstance(env, VecEnv):
+                one = env
+                env = DummyVecEnv([lambda: one])
             env.seed(seed)  # the reset of ``load``'s set_env takes it
         if method.kind == "ppo":
             from sb3_contrib import MaskablePPO
 
-            model = MaskablePPO.load(path, env=env)
+            model: Any = MaskablePPO.load(path, env=env)
         else:
             from sb3_taskalloc import TwoStageSAC
 
