@@ -210,6 +210,8 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
     record = json.loads((tmp_path / "results.json").read_text())
     # From step 0 (the untrained policy), then EvalCallback's deterministic evaluations, in env steps.
     assert [step for step, _ in record["eval_curve"]] == [0, 20, 40]
+    # then DAgger's rollouts, at the env steps they took; the paired gain over the held-out episodes is recorded
+    assert len(record["dagger_curve"]) == 1 and record["dagger_curve"][0][0] > 40 and len(record["gain"]) == 2
     assert record["n_envs"] == 2 and len(list(tmp_path.glob("train/*.monitor.csv"))) == 2
     assert record["env"] == "TaskAlloc/MT-v0" and record["steps"] == 40 and record["dagger_iterations"] == 1
     assert set(record["eval"]) == {"TwoStageSAC", "TwoStageSAC untrained", "Greedy", "Random"}

@@ -1,7 +1,9 @@
-"""``make demo``: train TwoStageSAC briefly on a TaskAlloc env (the env's policy settings from its zoo block, SAC steps
-on 8 envs at once, then a few DAgger iterations of the pointer), and compare the trained policy with the same policy
-untrained, Greedy and Random on the same held-out episodes. Writes a learning curve (from step 0: the deterministic
-return on held-out episodes, and the sampled training episodes), the trained model and a GIF of one episode."""
+"""``make demo``: train TwoStageSAC briefly on a TaskAlloc env with the env's recommended configuration
+(:meth:`TwoStageSAC.from_zoo`: its zoo block, SAC steps on 8 envs at once) at a demo's budget, then a few DAgger
+iterations of the pointer, and compare the trained policy with the same policy untrained, Greedy and Random on the
+same held-out episodes. Writes a learning curve from step 0 (the deterministic return on held-out episodes after the
+SAC steps, then on each DAgger iteration's rollouts; the sampled training episodes), the model and a GIF of one
+episode."""
 
 from __future__ import annotations
 
@@ -18,17 +20,21 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         formatter_class=argparse.ArgumentDefaultsHelpFormatter, prog="python -m sb3_taskalloc.demo", description=__doc__
     )
-    parser.add_argument("--env", type=full_env_id, default="TaskAlloc/RBF-v0", help="environment id")
-    parser.add_argument("--steps", type=int, default=3000, help="training env steps (all envs together)")
+    parser.add_argument("--env", type=full_env_id, default="TaskAlloc/MT-v0", help="environment id")
+    parser.add_argument("--steps", type=int, default=600, help="training env steps (all envs together)")
     parser.add_argument("--n-envs", type=int, default=8, help="envs collected at once (one batched decision for all)")
-    parser.add_argument("--dagger-iterations", type=int, default=2, help="DAgger iterations of the pointer after SAC")
-    parser.add_argument("--dagger-episodes", type=int, default=2, help="episodes rolled out per DAgger iteration")
-    parser.add_argument("--eval-episodes", type=int, default=10, help="held-out evaluation episodes of every agent")
-    parser.add_argument("--eval-every", type=int, default=1000, help="env steps between the curve's evaluations")
+    parser.add_argument("--dagger-iterations", type=int, default=8, help="DAgger iterations of the pointer after SAC")
+    parser.add_argument("--dagger-episodes", type=int, default=4, help="episodes rolled out per DAgger iteration")
+    parser.add_argument("--eval-episodes", type=int, default=60, help="held-out evaluation episodes of every agent")
+    parser.add_argument("--eval-every", type=int, default=300, help="env steps between the curve's evaluations")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--out", default="demo_out", help="output folder")
     return parser.parse_args(argv)
+
+
+#: Envs that run side by side in the DAgger rollouts and in the held-out evaluation (one batched decision for all).
+ROLLOUT_ENVS, EVAL_ENVS = 4, 10
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -40,14 +46,16 @@ def main(argv: list[str] | None = None) -> None:
     from stable_baselines3.common.evaluation import evaluate_policy
 
     import envs  # registers the TaskAlloc ids
-    from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
-    from sb3_taskalloc.zoo_config import zoo_hyperparameters
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.two_stage_sac.dagger import check_distill_select
 
     th.set_num_threads(args.threads)
     if args.env not in envs.ENV_SPECS:
         raise SystemExit(f"unknown env {args.env!r}; choose from {sorted(envs.ENV_SPECS)}")
-    if args.n_envs < 1 or args.steps < args.n_envs or min(args.eval_episodes, args.dagger_episodes) < 1:
-        raise SystemExit("--n-envs, --eval-episodes and --dagger-episodes must be >= 1, and --steps >= --n-envs")
+    if args.n_envs < 1 or args.steps < args.n_envs or args.eval_episodes < 1:
+        raise SystemExit("--n-envs and --eval-episodes must be >= 1, and --steps >= --n-envs")
+    if args.dagger_iterations:
+        check_distill_select(args.dagger_iterations, args.dagger_episodes, 8, 1e-3, 32, "set")
 
     class EpisodeEnds(BaseCallback):
         """(env steps collected so far, return) of each training episode as it ends, in every env (their Monitors)."""
@@ -61,37 +69,39 @@ def main(argv: list[str] | None = None) -> None:
             return True
 
     out = Path(args.out)
-    train_env = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, monitor_dir=str(out / "train"))
-    # The env's policy settings from its zoo block (its pre-assign rule, its decision rounds); the rest are the defaults.
-    policy_kwargs = zoo_hyperparameters(args.env).get("policy_kwargs", {})
-    model = TwoStageSAC(
-        "TAMPolicy", train_env, learning_starts=min(500, args.steps // 3), seed=args.seed, policy_kwargs=policy_kwargs
-    )
-    untrained = TwoStageSAC("TAMPolicy", args.env, seed=args.seed, policy_kwargs=policy_kwargs)
+    # The env's recommended configuration at a demo's budget: its zoo block, with a warm-up of a third of the steps; the
+    # block's DAgger runs below on batched rollouts, shortened.
+    model = TwoStageSAC.from_zoo(args.env, seed=args.seed, n_envs=args.n_envs, learning_starts=args.steps // 3)
+    model.zoo_callbacks = []
+    model.set_env(make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, monitor_dir=str(out / "train")))
+    untrained = TwoStageSAC.from_zoo(args.env, seed=args.seed, n_envs=1)
     untrained.policy.load_state_dict(model.policy.state_dict())  # the same policy, before training
     # The curve: the deterministic return on held-out episodes (reset seeds disjoint from training), from step 0.
-    eval_env = make_vec_env(args.env, n_envs=1, seed=20_000 + args.seed)
-    start = float(np.mean(evaluate_policy(model, eval_env, n_eval_episodes=min(args.eval_episodes, 3))[0]))
-    curve = EvalCallback(
-        eval_env,
-        eval_freq=max(1, args.eval_every // args.n_envs),
-        n_eval_episodes=min(args.eval_episodes, 3),
-        log_path=str(out),  # EvalCallback keeps its evaluations only with a log path
-        verbose=0,
-    )
-    dagger = (
-        [SelectDAggerCallback(args.dagger_iterations, args.dagger_episodes, imitation="set")] if args.dagger_iterations else []
-    )
+    curve_env = make_vec_env(args.env, n_envs=4, seed=20_000 + args.seed)
+    start = float(np.mean(evaluate_policy(model, curve_env, n_eval_episodes=4)[0]))
+    curve = EvalCallback(curve_env, eval_freq=max(1, args.eval_every // args.n_envs), n_eval_episodes=4, log_path=str(out),
+                         verbose=0)  # fmt: skip
     episodes = EpisodeEnds()
-    print(f"training TwoStageSAC on {args.env}: {args.steps} steps on {args.n_envs} envs, then {args.dagger_iterations} "
-          "DAgger iterations of the pointer...")  # fmt: skip
+    print(f"training TwoStageSAC on {args.env} (its zoo block): {args.steps} steps on {args.n_envs} envs, then "
+          f"{args.dagger_iterations} DAgger iterations of the pointer...")  # fmt: skip
     t0 = time.time()
-    model.learn(args.steps, callback=[episodes, curve, *dagger], progress_bar=True)
-    train_s = time.time() - t0
-    model.save(out / "two_stage_sac")
+    model.learn(args.steps, callback=[episodes, curve], progress_bar=True)
     evaluated = zip(curve.evaluations_timesteps, curve.evaluations_results, strict=True)
     points = [(0, start), *((int(t), float(np.mean(r))) for t, r in evaluated)]
-    report(args, {"TwoStageSAC": model, "TwoStageSAC untrained": untrained}, train_s, episodes.ends, points)
+    rollouts: list[tuple[int, float]] = []
+    if args.dagger_iterations:  # SelectDAggerCallback's schedule, on batched rollouts of seeds disjoint from the others
+        steps = [args.steps]
+
+        def iteration_done(stats: dict[str, float]) -> None:
+            steps.append(steps[-1] + int(stats["steps"]))
+            rollouts.append((steps[-1], stats["mean_return"]))
+
+        dagger_env = make_vec_env(args.env, n_envs=ROLLOUT_ENVS, seed=50_000 + args.seed)
+        model.distill_select(dagger_env, iterations=args.dagger_iterations, episodes=args.dagger_episodes, imitation="set",
+                             seed=50_000 + args.seed, progress_bar=True, callback=iteration_done)  # fmt: skip
+    train_s = time.time() - t0
+    model.save(out / "two_stage_sac")
+    report(args, {"TwoStageSAC": model, "TwoStageSAC untrained": untrained}, train_s, episodes.ends, points, rollouts)
 
 
 def report(
@@ -100,6 +110,7 @@ def report(
     train_s: float,
     ends_: list[tuple[int, float]],
     points: list[tuple[int, float]],
+    rollouts: list[tuple[int, float]],
 ) -> None:
     """Evaluate the trained and the untrained model beside Greedy and Random on the same held-out episodes; write the
     curve, the GIF of one episode and ``results.json``."""
@@ -116,33 +127,52 @@ def report(
     agents = {**models, "Greedy": GreedyAllocator(), "Random": RandomAllocator(args.seed)}
     results, returns = {}, {}
     for name, agent in agents.items():
-        eval_env = make_vec_env(args.env, n_envs=1, seed=10_000 + args.seed)  # the same episodes for every agent
-        returns[name], _ = evaluate_policy(agent, eval_env, args.eval_episodes, return_episode_rewards=True)  # type: ignore[arg-type,assignment]
+        # The same episodes for every agent: each env's reset seed and episode count are fixed (evaluate_policy)
+        eval_env = make_vec_env(args.env, n_envs=min(EVAL_ENVS, args.eval_episodes), seed=10_000 + args.seed)
+        which: list[tuple[int, int]] = []  # (env, its episode) of each return, in evaluate_policy's order
+
+        def note(local: dict[str, Any], _: Any, which: list[tuple[int, int]] = which) -> None:
+            if local["done"]:  # called just before evaluate_policy records the episode's return
+                which.append((local["i"], int(local["episode_counts"][local["i"]])))
+
+        found, _ = evaluate_policy(agent, eval_env, args.eval_episodes, return_episode_rewards=True, callback=note)  # type: ignore[arg-type]
+        returns[name] = np.asarray(found, dtype=float)[sorted(range(len(which)), key=which.__getitem__)]  # paired order
         results[name] = (float(np.mean(returns[name])), float(np.std(returns[name])))
-    gain = np.asarray(returns["TwoStageSAC"]) - np.asarray(returns["TwoStageSAC untrained"])
+    gain = returns["TwoStageSAC"] - returns["TwoStageSAC untrained"]
+    over_greedy = returns["TwoStageSAC"] - returns["Greedy"]
     trained = f"trained {args.steps} steps + {args.dagger_iterations} DAgger iterations, {train_s:.0f} s"
     print(f"\n{args.env}: return over {args.eval_episodes} held-out episodes ({trained})")
     for name, (mean, std) in results.items():
         print(f"  {name:22s} {mean:9.1f} ± {std:.1f}")
-    print(f"  trained − untrained per episode: {gain.mean():+.1f} ± {gain.std(ddof=1) / np.sqrt(gain.size):.1f} (s.e.)")
+    for what, diff in (("untrained", gain), ("Greedy", over_greedy)):
+        print(f"  trained − {what} per episode: {diff.mean():+.1f} ± {diff.std(ddof=1) / np.sqrt(diff.size):.1f} (s.e.)")
     ends = np.array([t for t, _ in ends_], dtype=float)
+    end = rollouts[-1][0] if rollouts else args.steps
+    n = args.eval_episodes
+    curves: dict[str, list[tuple[int, float]]] = {
+        f"held-out, {n} episodes (untrained, trained)": [
+            (0, results["TwoStageSAC untrained"][0]),
+            (end, results["TwoStageSAC"][0]),
+        ],
+        "held-out, 4 episodes (during the SAC steps)": points,
+    }
+    if rollouts:  # DAgger's own rollouts continue the curve, at the env steps they took
+        curves[f"DAgger's rollouts ({args.dagger_episodes} training episodes each)"] = rollouts
     png = plot_learning_curve(
-        {"TwoStageSAC, sampled (training episodes)": (ends, np.array([r for _, r in ends_], dtype=float))},
+        {"TwoStageSAC, sampled (training episodes)": (ends, np.array([r for _, r in ends_], dtype=float))} if ends_ else {},
         out / "learning_curve.png",
-        title=f"{args.env}: TwoStageSAC, {args.steps} steps",
+        title=f"{args.env}: TwoStageSAC, {args.steps} steps, then {args.dagger_iterations} DAgger iterations",
         baselines={"Greedy": results["Greedy"][0], "untrained policy": results["TwoStageSAC untrained"][0]},
-        xlabel="env steps",
+        xlabel="env steps (training, then DAgger's rollouts)",
         points={
-            "TwoStageSAC, deterministic (held-out evaluation)": (
-                np.array([t for t, _ in points], dtype=float),
-                np.array([v for _, v in points]),
-            )
+            name: (np.array([t for t, _ in xy], dtype=float), np.array([v for _, v in xy])) for name, xy in curves.items()
         },
     )
     model = models["TwoStageSAC"]
     gif, ret = save_gif(gym.make(args.env, render_mode="rgb_array"), model, out / "episode.gif")
     record = {"env": args.env, "steps": args.steps, "n_envs": args.n_envs, "dagger_iterations": args.dagger_iterations,
-              "train_seconds": train_s, "eval": results, "eval_curve": points}  # fmt: skip
+              "train_seconds": train_s, "eval": results, "eval_curve": points, "dagger_curve": rollouts,
+              "gain": [float(gain.mean()), float(gain.std(ddof=1) / np.sqrt(gain.size))]}  # fmt: skip
     (out / "results.json").write_text(json.dumps(record, indent=2))
     print(f"wrote {png}, {gif} (episode return {ret:.1f}), {out / 'two_stage_sac.zip'}, {out / 'results.json'}")
 

@@ -87,6 +87,9 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     selector: Selector
     select_critic: SelectCritic
     select_critic_target: SelectCritic
+    #: Set by :meth:`from_zoo`: the block's budget (``learn()``'s default) and its callbacks (run by each ``learn``).
+    zoo_n_timesteps: int | None = None
+    zoo_callbacks: tuple[Any, ...] | list[Any] = ()
 
     def __init__(
         self,
@@ -303,10 +306,9 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         """Train for ``total_timesteps`` env steps (default: the zoo block's budget for a model made by :meth:`from_zoo`,
         else :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000); a :meth:`from_zoo` model also runs its block's callbacks."""
         if total_timesteps is None:
-            total_timesteps = getattr(self, "zoo_n_timesteps", None) or DEFAULT_TOTAL_TIMESTEPS
-        zoo_callbacks = getattr(self, "zoo_callbacks", [])
-        if zoo_callbacks:
-            callback = [*zoo_callbacks, *(callback if isinstance(callback, list) else [callback] if callback else [])]
+            total_timesteps = self.zoo_n_timesteps or DEFAULT_TOTAL_TIMESTEPS
+        if self.zoo_callbacks:
+            callback = [*self.zoo_callbacks, *(callback if isinstance(callback, list) else [callback] if callback else [])]
         if not (isinstance(total_timesteps, int | np.integer) and total_timesteps >= 0):
             raise ValueError(f"total_timesteps must be a non-negative integer, got {total_timesteps!r}")
         end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
