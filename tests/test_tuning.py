@@ -10,6 +10,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -100,13 +101,42 @@ def test_study_with_pruner_completes_and_summarizes(tmp_path):
     opened = runner.open_study(runner.parse_args(worker_args(tmp_path, 2)))
     assert isinstance(opened.pruner, optuna.pruners.MedianPruner) and isinstance(opened.sampler, optuna.samplers.TPESampler)
     assert len(opened.trials) == 2  # opened by name: the same study
-    best = yaml.safe_load((tmp_path / "s/best.yml").read_text())
-    assert best["TaskAlloc/Almighty-v0"]["policy"] == "TAMPolicy"
+    best = yaml.safe_load((tmp_path / "s/best.yml").read_text())["TaskAlloc/Almighty-v0"]
+    # The env's zoo block with the best trial's settings over it, at the study's budget: it trains as the trial did.
+    assert best["policy"] == "TAMPolicy" and best["n_envs"] == 1 and best["n_timesteps"] == 40
+    assert best["learning_rate"] == study.best_trial.params["learning_rate"]
+    assert best["learning_starts"] == study.best_trial.user_attrs["learning_starts"] <= 20
     rows = (tmp_path / "s/trials.csv").read_text().strip().splitlines()
     assert len(rows) == 3 and rows[0].startswith("number,state,value")
     # Resume by study name: a second run with a larger total adds only the missing trials.
     runner.main(worker_args(tmp_path, 3))
     assert runner.count(load(tmp_path), runner.FINISHED) == 3 and len(load(tmp_path).trials) == 3
+
+
+def test_a_trial_trains_the_env_zoo_block_under_its_sampled_settings(monkeypatch):
+    """The trials trained the constructor defaults on one env whatever the zoo block held; now MT's trial trains its
+    block (8 envs, the margin rule, the held actor, the team search of 32 decodes) with the sampled settings over it."""
+    from stable_baselines3.common.vec_env import VecEnv
+
+    seen: dict[str, Any] = {}
+
+    class StopError(Exception):
+        pass
+
+    def record(policy: str, env: Any, **kwargs: Any) -> None:
+        seen.update(env=env, **kwargs)
+        raise StopError
+
+    monkeypatch.setattr(runner, "TwoStageSAC", record)
+    args = runner.parse_args(["--env", "MT", "--n-timesteps", "800", "--n-evaluations", "2"])
+    with pytest.raises(StopError):
+        runner.objective(optuna.trial.FixedTrial({**FIXED, "learning_starts": 1000}), args)
+    assert isinstance(seen["env"], VecEnv) and seen["env"].num_envs == 8
+    assert seen["train_preassign_actor"] is False and seen["tau"] == 0.01  # the block's, and the sampled over it
+    assert seen["policy_kwargs"] == {"rule_weights": {"margin": 3.0}, "rounds": 2, "hidden_dim": 32, "n_attention_layers": 1,
+                                     "logit_scale": 100.0, "select_logit_scale": 10.0}  # fmt: skip
+    assert seen["select_kwargs"] == {"prior_coef": 3.0, "search_coef": 10.0, "search_samples": 32, "batch_size": 8}
+    assert seen["learning_starts"] == 400  # at most half the trial's budget
 
 
 def child_env() -> dict[str, str]:
