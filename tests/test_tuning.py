@@ -332,6 +332,18 @@ def test_stale_trials_are_found_by_heartbeat_not_pid(tmp_path):
     assert len(retry) == 1 and retry[0].state == TrialState.WAITING
 
 
+def test_workers_joining_together_propose_different_parameters(tmp_path):
+    """Two workers that open the study at the same moment (same state) proposed the same parameters when the seed
+    came from the state the worker joined; seeded by trial number they differ, and a rerun proposes the same again."""
+    args = runner.parse_args(worker_args(tmp_path, 4))
+    first, second = runner.open_study(args), runner.open_study(args)
+    one, two = first.ask(), second.ask()
+    proposals = [sample_two_stage_sac_params(t, 0, 1, {}) for t in (one, two)]
+    assert (one.number, two.number) == (0, 1) and proposals[0] != proposals[1]
+    again = runner.open_study(runner.parse_args(worker_args(tmp_path / "again", 4)))
+    assert sample_two_stage_sac_params(again.ask(), 0, 1, {}) == proposals[0]
+
+
 def test_heartbeat_thread_beats_while_the_trial_runs():
     study = optuna.create_study()
     trial = study.ask()

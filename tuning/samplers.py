@@ -97,3 +97,22 @@ def sample_two_stage_sac_params(
     trial.set_user_attr("gamma", hyperparams["gamma"])
     trial.set_user_attr("batch_size", hyperparams["batch_size"])
     return hyperparams
+
+
+class TrialSeededTPESampler(optuna.samplers.TPESampler):
+    """TPE whose random state is set, before each trial samples, from the study's ``seed`` and the trial's number.
+
+    The trial number is handed out by the storage, one per trial across every worker, so workers that join a study
+    at the same moment still propose different parameters, and a study run again on the same state proposes the same
+    ones (a seed taken when a worker joins gives two workers starting together the same proposals)."""
+
+    def __init__(self, seed: int, **kwargs: Any) -> None:
+        super().__init__(seed=seed, **kwargs)
+        self.study_seed = seed
+
+    def before_trial(self, study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        seed = (self.study_seed * 1_000_003 + trial.number) % 2**32
+        # TPE's own generator and that of its random start-up sampler (Optuna keeps both as LazyRandomState)
+        self._rng.rng.seed(seed)
+        self._random_sampler._rng.rng.seed(seed)
+        super().before_trial(study, trial)

@@ -50,7 +50,7 @@ from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
 from sb3_taskalloc.experiments.budgets import full_env_id
 from sb3_taskalloc.zoo_config import merge_settings, training_env, zoo_block, zoo_hyperparameters
-from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
+from tuning.samplers import TrialSeededTPESampler, convert_two_stage_sac_params, sample_two_stage_sac_params
 from tuning.storage import journal_path, make_storage
 
 #: Reset seed of the evaluation episodes (disjoint from the training seeds, which start at ``--seed``).
@@ -242,10 +242,8 @@ def open_study(args: argparse.Namespace) -> optuna.Study:
         pruner=optuna.pruners.MedianPruner(n_startup_trials=args.n_startup_trials, n_warmup_steps=args.n_evaluations // 3),
     )
     check_study_settings(study, args)
-    # The sampler's seed follows from --seed and the trials the study holds when the worker joins: a worker started
-    # again on the same study state proposes the same parameters, and workers that join later propose others.
-    seed = args.seed * 1_000_003 + len(study.trials)
-    study.sampler = optuna.samplers.TPESampler(n_startup_trials=args.n_startup_trials, seed=seed, multivariate=True)
+    # Each trial samples from a state set by --seed and its trial number (unique across workers).
+    study.sampler = TrialSeededTPESampler(n_startup_trials=args.n_startup_trials, seed=args.seed, multivariate=True)
     return study
 
 
