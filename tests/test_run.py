@@ -246,6 +246,7 @@ def test_entry_points_answer_help(module):
         ({"select_kwargs": {"prior_coef": float("nan")}}, r"select_kwargs\['prior_coef'\] must be a finite number"),
         ({"train_preassign_actor": "no"}, "train_preassign_actor must be True or False, got 'no'"),
         ({"prior_coef": -0.5}, "prior_coef must be a finite number >= 0"),
+        ({"target_entropy_ratio": "high"}, "target_entropy_ratio must be a finite number >= 0, got 'high'"),
         ({"ent_coef": "autox"}, "ent_coef must be 'auto'"),
         ({"ent_coef": "auto_x"}, "ent_coef must be 'auto'"),
         ({"ent_coef": -1.0}, "ent_coef must be"),

@@ -310,6 +310,7 @@ def test_unclear_tracebacks_became_messages(tmp_path, capsys):
         TwoStageSAC.load(tmp_path / "ppo.zip")
     for argv, match in (
         (["learn", "--env", "RBF", "--algo-kwargs", "{tau: [0.05"], "not valid YAML"),
+        (["learn", "--env", "RBF", "--zero-shot", "Foo"], "--zero-shot: unknown env 'Foo'"),  # refused after training
         (["almighty", "--seeds", "0"], "--seeds, --steps and --every must be >= 1"),
     ):
         with pytest.raises(SystemExit):
