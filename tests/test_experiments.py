@@ -677,12 +677,14 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch)
     assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | pairs |" in text
     assert "| pairs | corr(ΔQ, ΔḠ) | ΔḠ ceiling | same sign | training s |" in text
     assert "a perfect critic would reach corr(Q, G)" in text
+    assert f"the MILP stops at {learn.MILP_NODE_LIMIT} HiGHS nodes per solve" in text  # a stop by work, its gap reported
     data = json.loads((tmp_path / "EPT.json").read_text())
     assert [r["seed"] for r in data["seeds"]] == [0, 1]
     for record in data["seeds"]:
         assert set(record["eval_seeds"]).isdisjoint(range(10_000)) and len(record["trained"]) == 2
         assert len(record["actor_only"]) == len(record["pointer_only"]) == 2
         assert [p[0] for p in record["curve"]] == [0, 5, 10]
+        assert record["MILP gap"]["solves"] > 0 and 0 <= record["MILP gap"]["max_gap"] < 1
     assert (tmp_path / "EPT.png").stat().st_size > 0
     assert evaluation.eval_seeds(0, 10)[-1] < evaluation.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
     shifted = run.zero_shot("EPT-TaskShift").read_text()  # the saved models, untrained on another env

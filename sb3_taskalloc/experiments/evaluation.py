@@ -152,19 +152,26 @@ class Curve(BaseCallback):
         return True
 
 
-def baseline_returns(run: Any, seed: int) -> dict[str, list[float]]:
+def baseline_returns(run: Any, seed: int) -> dict[str, Any]:
     """Greedy, the per-step MILP and the planners on seed ``seed``'s evaluation episodes. They depend on the env,
     the episodes and their own budgets only, so they are filed under a digest of those and shared by every run of
     the algorithm's settings (each is computed once)."""
     from sb3_taskalloc import baselines as b
 
     seeds = eval_seeds(seed, run.eval_episodes)
-    key = config_key(env_settings(run.env_id), seeds, run.milp_time_limit, PLANNER_BUDGET)
+    key = config_key(env_settings(run.env_id), seeds, ("milp_node_limit", run.milp_node_limit), PLANNER_BUDGET)
     path = Path(run.out) / run.env / f"baselines_seed_{seed}_{key}.json"
-    done: dict[str, list[float]] = json.loads(path.read_text()) if path.exists() else {}
+    done: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
+
+    def milp_returns() -> list[float]:
+        milp = b.MILPAllocator.reference(run.milp_node_limit)
+        returns = episode_returns(milp, run.env_id, seeds)
+        done["MILP gap"] = milp.gap_summary()  # how far from optimal its allocations may be, filed beside them
+        return returns
+
     agents: dict[str, Callable[[], list[float]]] = {
         "Greedy": lambda: episode_returns(b.GreedyAllocator(), run.env_id, seeds),
-        "MILP": lambda: episode_returns(b.MILPAllocator(time_limit=run.milp_time_limit), run.env_id, seeds),
+        "MILP": milp_returns,
     }
     for name in run.planners:
         cls = getattr(b, name)
@@ -177,4 +184,4 @@ def baseline_returns(run: Any, seed: int) -> dict[str, list[float]]:
         if name not in done:
             done[name] = evaluate()
             atomic_write_text(path, json.dumps(done) + "\n")
-    return {name: done[name] for name in agents}
+    return {name: done[name] for name in (*agents, "MILP gap") if name in done}

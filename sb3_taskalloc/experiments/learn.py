@@ -36,7 +36,7 @@ from typing import Any
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments import evaluation, learn_report, reevaluate
-from sb3_taskalloc.experiments.budgets import code_defaults, config_key, env_settings
+from sb3_taskalloc.experiments.budgets import MILP_NODE_LIMIT, code_defaults, config_key, env_settings
 from sb3_taskalloc.experiments.evaluation import PLANNERS, Curve, eval_seeds, one_thread, validation_seeds
 
 # The DAgger rollouts of training seed ``seed`` run from 50,000 + 1000·seed, clear of the held-out (10,000 + 100·seed),
@@ -56,7 +56,8 @@ class LearnRun:
     :param eval_every: env steps between the curve's evaluations
     :param algo_kwargs: TwoStageSAC keywords over the env's block of ``zoo_configs/two_stage_sac.yml``
     :param planners: planner class names to run (the best is reported); empty: none
-    :param milp_time_limit: seconds per MILP solve
+    :param milp_node_limit: HiGHS nodes per solve of the per-step MILP reference (a stop by work, so its figures repeat
+        on any machine; :data:`.budgets.MILP_NODE_LIMIT`)
     :param out: results folder
     :param validation_episodes: when > 0, the curve is measured on this many validation episodes per seed
         (:func:`validation_seeds`, disjoint from the held-out ones) and the checkpoint of its best point after step 0
@@ -84,7 +85,7 @@ class LearnRun:
     eval_every: int = 2_000
     algo_kwargs: dict[str, Any] = field(default_factory=dict)
     planners: tuple[str, ...] = PLANNERS
-    milp_time_limit: float = 2.0
+    milp_node_limit: int = MILP_NODE_LIMIT
     out: str | Path = "runs/learn"
     validation_episodes: int = 0
     select_dagger: int | None = None
@@ -134,7 +135,7 @@ class LearnRun:
     @property
     def key(self) -> str:
         """Digest of every setting that changes a seed's result."""
-        settings: tuple[Any, ...] = (self.steps, self.eval_episodes, self.eval_every, self.planners, self.milp_time_limit)
+        settings: tuple[Any, ...] = (self.steps, self.eval_episodes, self.eval_every, self.planners, self.milp_node_limit)
         if self.validation_episodes:  # appended only when set: the digests of runs without it stay valid
             settings += (self.validation_episodes,)
         if self.select_dagger:
@@ -263,7 +264,7 @@ class LearnRun:
         kept = ("seed", "eval_seeds", "untrained", "train_seconds", "curve_seconds", "best", "best_step")
         return model, {k: done[k] for k in kept if k in done}, curve
 
-    def baselines(self, seed: int) -> dict[str, list[float]]:
+    def baselines(self, seed: int) -> dict[str, Any]:
         """Greedy, the per-step MILP and the planners on seed ``seed``'s episodes (:func:`.evaluation.baseline_returns`)."""
         return evaluation.baseline_returns(self, seed)
 
