@@ -19,7 +19,7 @@ from sb3_taskalloc.experiments import bench
     [
         ("envs", {"env", "steps_per_s", "steps_per_s_gym_make", "deepcopy_ms", "entities"}),
         ("policy", {"device", "entities", "tasks", "predict_ms"}),
-        ("train", {"device", "env", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
+        ("train", {"device", "env", "config", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
         ("learn", {"device", "seed", "untrained", "target_return", "reached", "last_return", "training_s", "curve"}),
         ("labels", {"labeller", "rounds", "tasks", "ms_per_round", "seconds"}),
     ],
@@ -49,6 +49,10 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
             if key.endswith(("_per_s", "_ms", "_GB_for_100k")):
                 assert row[key] > 0, (key, row)
     if which == "train":  # --quick times one block of learn(), recorded (rounded) beside the rate
+        # what users run beside the defaults: RBF's zoo block (8 envs, its DAgger schedule extrapolated)
+        assert [row["config"] for row in rows] == ["constructor defaults", "zoo block"]
+        assert rows[1]["env"].endswith("zoo block (n_envs=8)") and rows[1]["dagger_iterations"] == 8
+        assert rows[1]["minutes_for_the_block"] > 0
         for row in rows:
             (block,) = row["env_steps_per_s_blocks"]
             assert abs(block - row["env_steps_per_s"]) <= 0.005

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+import warnings
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -28,7 +29,9 @@ def measure_training(
 ) -> dict[str, Any]:
     """One row: env steps/s of ``learn`` (the median of ``blocks`` runs of ``steps`` steps), then the gradient step
     and the stochastic decision timed apart (medians over single steps)."""
-    model.learn(64)
+    with warnings.catch_warnings():  # the warm-up: no gradient step yet, as the warning says
+        warnings.simplefilter("ignore", UserWarning)
+        model.learn(64)
     rates = []
     for _ in range(blocks):
         t0 = time.perf_counter()
@@ -61,6 +64,7 @@ def measure_training(
     return {
         "device": device,
         "env": env,
+        "config": "constructor defaults",
         "env_steps_per_s": rate,
         "env_steps_per_s_blocks": [round(r, 2) for r in rates],
         "minutes_to_100k_steps": 1e5 / rate / 60,  # extrapolated from the rate, for RBF's paper budget
@@ -99,6 +103,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
                 continue
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
             rows.append(measure_training(model, device, steps, blocks, env_id, 60 if env_id == "TaskAlloc/RBF-v0" else None))
+            rows.append(zoo_block_row(env_id, device, steps, blocks, dagger=not args.quick))
             if env_id == "TaskAlloc/RBF-v0":  # vectorised collection: one batched decision for n_envs envs
                 for n_envs in () if args.quick else (8,):
                     vec = make_vec_env(env_id, n_envs=n_envs, seed=0)
@@ -109,6 +114,29 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             model = TwoStageSAC("TAMPolicy", env, learning_starts=64, batch_size=64, seed=0, device=device)
             rows.append(measure_training(model, device, steps // 2, blocks, f"RBF-v0, first {n} entities"))
     return rows
+
+
+def zoo_block_row(env_id: str, device: str, steps: int, blocks: int, dagger: bool) -> dict[str, Any]:
+    """The env's recommended configuration as users train it (:meth:`TwoStageSAC.from_zoo`: its zoo block, ``n_envs``
+    included) timed like the defaults, with a 64-step warm-up; with ``dagger``, one iteration of the block's DAgger
+    phase timed apart and the block's whole schedule (its budget, then its DAgger iterations) extrapolated."""
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.zoo_config import zoo_dagger
+
+    model = TwoStageSAC.from_zoo(env_id, seed=0, learning_starts=64, device=device)
+    model.zoo_callbacks = ()  # the DAgger phase is timed apart
+    n_envs = model.n_envs
+    row = measure_training(model, device, max(steps, 8 * n_envs), blocks, f"{env_id}, zoo block (n_envs={n_envs})", 60)
+    schedule = zoo_dagger(env_id)
+    row.update(config="zoo block", dagger_iterations=schedule.get("iterations", 0), dagger_s_per_iteration=None)
+    if dagger and schedule:
+        t0 = time.perf_counter()
+        model.distill_select(env_id, **{**schedule, "iterations": 1}, seed=0)
+        row["dagger_s_per_iteration"] = time.perf_counter() - t0
+    budget = model.zoo_n_timesteps or 0
+    dagger_s = (row["dagger_s_per_iteration"] or 0.0) * row["dagger_iterations"]
+    row["minutes_for_the_block"] = (budget / row["env_steps_per_s"] + dagger_s) / 60 if budget else None
+    return row
 
 
 class ToTarget(Curve):
