@@ -7,6 +7,7 @@ themselves, never asserted by a timed test.
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -20,7 +21,7 @@ from sb3_taskalloc.experiments import bench
         ("envs", {"env", "steps_per_s", "steps_per_s_gym_make", "deepcopy_ms", "entities"}),
         ("policy", {"device", "entities", "tasks", "predict_ms"}),
         ("train", {"device", "env", "config", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
-        ("learn", {"device", "seed", "untrained", "target_return", "reached", "last_return", "training_s", "curve"}),
+        ("learn", {"device", "seed", "untrained", "target_return", "reached", "last_return", "training_s", "dagger_s"}),
         ("labels", {"labeller", "rounds", "tasks", "ms_per_round", "seconds"}),
     ],
 )
@@ -69,6 +70,8 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
             assert n == 8 and steps == [-(-100 // n) * n, 200][: len(steps)] and row["env_steps"] == steps[-1]
             assert row["reached"] == (row["last_return"] >= row["target_return"]) == (row["seconds_to_target"] is not None)
             assert row["curve"][-1][1] == row["training_s"] > 0
+            # then the zoo block's DAgger phase, timed and evaluated apart (--quick: one iteration of one episode)
+            assert row["dagger_iterations"] == 1 and row["dagger_s"] > 0 and math.isfinite(row["after_dagger_return"])
     if which == "labels":  # the two labellers on the same rounds: both exact, so equally profitable
         assert [row["labeller"] for row in rows] == ["task by task (branch and bound)", "one HiGHS solve per round"]
         assert rows[0]["rounds"] == rows[1]["rounds"] > 0 and rows[0]["tasks"] >= rows[0]["rounds"]

@@ -180,13 +180,16 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Wall-clock to a trained policy: TwoStageSAC on RBF at the zoo config (``--algo-kwargs`` over it) trains until its
     deterministic mean return on seed k's held-out episodes (those of ``experiments learn``) reaches
     :data:`LEARN_TARGET` × the same policy untrained on them, or ``--learn-steps`` env steps. It is evaluated every
-    ``--eval-every`` env steps; the evaluations are not counted in the time. One row per training seed and device."""
+    ``--eval-every`` env steps; the evaluations are not counted in the time. Then the block's DAgger phase runs, timed
+    and evaluated on the same episodes apart. One row per training seed and device."""
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.evaluation import episode_returns, eval_seeds
-    from sb3_taskalloc.zoo_config import over_zoo, training_env
+    from sb3_taskalloc.zoo_config import over_zoo, training_env, zoo_dagger
 
     env_id = "TaskAlloc/RBF-v0"
+    # The block's DAgger phase after the training steps, timed and evaluated apart (--quick: one short iteration).
+    schedule = {**zoo_dagger(env_id), **({"iterations": 1, "episodes": 1, "epochs": 1} if args.quick else {})}
     budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
     if budget < 1 or every < 1:
         raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
@@ -203,6 +206,13 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
             model.learn(budget, callback=callback)
             steps, seconds, _ = callback.timed[-1]
             reached, value = callback.reached, callback.last
+            after: dict[str, Any] = {"dagger_iterations": schedule.get("iterations", 0)}
+            if schedule:
+                t0 = time.perf_counter()
+                model.distill_select(env_id, **schedule, seed=50_000 + seed)
+                after["dagger_s"] = time.perf_counter() - t0
+                after["after_dagger_return"] = float(np.mean(episode_returns(model, env_id, seeds)))
+                after["after_dagger_ratio"] = after["after_dagger_return"] / untrained if untrained > 0 else None
             rows.append(
                 {
                     "device": device,
@@ -218,6 +228,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
                     "training_s": seconds,  # rounded like the curve
                     "env_steps": steps,
                     "curve": callback.timed,
+                    **after,
                 }
             )
     return rows
