@@ -56,8 +56,7 @@ class LearnRun:
     :param eval_every: env steps between the curve's evaluations
     :param algo_kwargs: TwoStageSAC keywords over the env's block of ``zoo_configs/two_stage_sac.yml``
     :param planners: planner class names to run (the best is reported); empty: none
-    :param milp_node_limit: HiGHS nodes per solve of the per-step MILP reference (a stop by work, so its figures repeat
-        on any machine; :data:`.budgets.MILP_NODE_LIMIT`)
+    :param milp_node_limit: HiGHS nodes per solve of the per-step MILP reference (:data:`.budgets.MILP_NODE_LIMIT`)
     :param out: results folder
     :param validation_episodes: when > 0, the curve is measured on this many validation episodes per seed
         (:func:`validation_seeds`, disjoint from the held-out ones) and the checkpoint of its best point after step 0
@@ -146,8 +145,7 @@ class LearnRun:
                 settings += (("dagger_kwargs", self.dagger_kwargs),)
         if self.device != "cpu":  # appended only when set: the digests of CPU runs stay valid
             settings += (("device", self.device),)
-        settings += (("code", code_defaults()),)  # what the hyperparameters leave to the code's defaults
-        return config_key(env_settings(self.env_id), self.hyperparameters, settings)
+        return config_key(env_settings(self.env_id), self.hyperparameters, (*settings, ("code", code_defaults())))
 
     def seed_path(self, seed: int) -> Path:
         return Path(self.out) / self.env / f"seed_{seed}_{self.key}.json"

@@ -54,6 +54,15 @@ from sb3_taskalloc.experiments.table_report import env_logs
 from sb3_taskalloc.zoo_config import merge_settings, zoo_dagger, zoo_hyperparameters
 
 
+def seeded_vec_env(env: Any, seed: int) -> Any:
+    """``env`` as a VecEnv whose next reset (``load``'s ``set_env``) takes ``seed``."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+    vec = env if isinstance(env, VecEnv) else DummyVecEnv([lambda: env])
+    vec.seed(seed)
+    return vec
+
+
 def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name).strip("_").lower()
 
@@ -275,24 +284,14 @@ class TableRun:
         self, method: Method, path: Path, env_id: str | None = None, log: Path | None = None, seed: int | None = None
     ) -> Any:
         """The model saved at ``path``, with a training env of ``env_id`` logging to ``log`` when given. With ``seed``
-        the env's first reset, the sampling and the network updates after loading are seeded (the few-shot training),
-        as a model built with that seed would be."""
-        from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
-
+        the env's first reset, the sampling and the network updates after loading are seeded (the few-shot training)."""
         env = self._train_env(env_id, log, self._n_envs(method)) if env_id and log else None
-        if env is not None and seed is not None:
-            if not isinstance(env, VecEnv):
-                one = env
-                env = DummyVecEnv([lambda: one])
-            env.seed(seed)  # the reset of ``load``'s set_env takes it
-        if method.kind == "ppo":
-            from sb3_contrib import MaskablePPO
+        env = seeded_vec_env(env, seed) if env is not None and seed is not None else env
+        from sb3_contrib import MaskablePPO
 
-            model: Any = MaskablePPO.load(path, env=env)
-        else:
-            from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc import TwoStageSAC
 
-            model = TwoStageSAC.load(path, env=env)
+        model = (MaskablePPO if method.kind == "ppo" else TwoStageSAC).load(path, env=env)
         if seed is not None:
             model.set_random_seed(seed)
         return model
