@@ -39,7 +39,7 @@ def check_saved_model(path: str | pathlib.Path, required: Sequence[str]) -> None
 
     :param required: archive members the model needs (``"data"``, ``"policy.pth"``, ...)
     """
-    found = next((p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file()), None)
+    found = _saved_file(path)
     if found is None:
         raise FileNotFoundError(f"no saved model at {path}" + ("" if str(path).endswith(".zip") else " (nor .zip)"))
     if not zipfile.is_zipfile(found):
@@ -56,7 +56,14 @@ def check_saved_model(path: str | pathlib.Path, required: Sequence[str]) -> None
 
 
 def saved_members(path: str | pathlib.Path) -> list[str]:
-    """The members of the saved model at ``path`` (or ``path.zip``), for messages about what a save lacks."""
-    found = next(p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file())
+    """The members of the saved model at ``path`` (or ``path.zip``; checked by :func:`check_saved_model`), for messages
+    about what a save lacks."""
+    found = _saved_file(path)
+    assert found is not None
     with zipfile.ZipFile(found) as archive:
         return archive.namelist()
+
+
+def _saved_file(path: str | pathlib.Path) -> pathlib.Path | None:
+    """The file SB3's ``load`` reads for ``path``: ``path`` itself, else ``path.zip``; None when neither exists."""
+    return next((p for p in (pathlib.Path(path), with_default_suffix(path, ".zip")) if p.is_file()), None)

@@ -46,16 +46,17 @@ def main(argv: list[str] | None = None) -> None:
     from stable_baselines3.common.evaluation import evaluate_policy
 
     import envs  # registers the TaskAlloc ids
-    from sb3_taskalloc import TwoStageSAC
-    from sb3_taskalloc.two_stage_sac.dagger import check_distill_select
+    from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
 
     th.set_num_threads(args.threads)
     if args.env not in envs.ENV_SPECS:
         raise SystemExit(f"unknown env {args.env!r}; choose from {sorted(envs.ENV_SPECS)}")
     if args.n_envs < 1 or args.steps < args.n_envs or args.eval_episodes < 1:
         raise SystemExit("--n-envs and --eval-episodes must be >= 1, and --steps >= --n-envs")
-    if args.dagger_iterations:
-        check_distill_select(args.dagger_iterations, args.dagger_episodes, 8, 1e-3, 32, "set")
+    # The callback's schedule (checked now, before training), run below on batched rollouts instead of one env.
+    dagger = (
+        SelectDAggerCallback(args.dagger_iterations, args.dagger_episodes, imitation="set") if args.dagger_iterations else None
+    )
 
     class EpisodeEnds(BaseCallback):
         """(env steps collected so far, return) of each training episode as it ends, in every env (their Monitors)."""
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
     evaluated = zip(curve.evaluations_timesteps, curve.evaluations_results, strict=True)
     points = [(0, start), *((int(t), float(np.mean(r))) for t, r in evaluated)]
     rollouts: list[tuple[int, float]] = []
-    if args.dagger_iterations:  # SelectDAggerCallback's schedule, on batched rollouts of seeds disjoint from the others
+    if dagger is not None:  # on rollouts of seeds disjoint from the others
         steps = [args.steps]
 
         def iteration_done(stats: dict[str, float]) -> None:
@@ -97,8 +98,7 @@ def main(argv: list[str] | None = None) -> None:
             rollouts.append((steps[-1], stats["mean_return"]))
 
         dagger_env = make_vec_env(args.env, n_envs=ROLLOUT_ENVS, seed=50_000 + args.seed)
-        model.distill_select(dagger_env, iterations=args.dagger_iterations, episodes=args.dagger_episodes, imitation="set",
-                             seed=50_000 + args.seed, progress_bar=True, callback=iteration_done)  # fmt: skip
+        model.distill_select(dagger_env, **dagger.kwargs, seed=50_000 + args.seed, progress_bar=True, callback=iteration_done)
     train_s = time.time() - t0
     model.save(out / "two_stage_sac")
     report(args, {"TwoStageSAC": model, "TwoStageSAC untrained": untrained}, train_s, episodes.ends, points, rollouts)

@@ -184,12 +184,13 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     and evaluated on the same episodes apart. One row per training seed and device."""
     import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments.budgets import DAGGER_BUDGET
     from sb3_taskalloc.experiments.evaluation import episode_returns, eval_seeds
     from sb3_taskalloc.zoo_config import over_zoo, training_env, zoo_dagger
 
     env_id = "TaskAlloc/RBF-v0"
-    # The block's DAgger phase after the training steps, timed and evaluated apart (--quick: one short iteration).
-    schedule = {**zoo_dagger(env_id), **({"iterations": 1, "episodes": 1, "epochs": 1} if args.quick else {})}
+    # The block's DAgger phase after the training steps, timed and evaluated apart (--quick: the smoke budget's).
+    schedule = {**zoo_dagger(env_id), **(DAGGER_BUDGET["smoke"] if args.quick else {})}
     budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
     if budget < 1 or every < 1:
         raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
