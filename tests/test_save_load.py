@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -9,6 +11,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.common.buffers import TwoStageReplayBuffer
 
 SMALL = {"hidden_dim": 16}
 
@@ -84,9 +87,17 @@ def test_replay_buffer_save_load(tmp_path):
     fresh = TwoStageSAC("TAMPolicy", "TaskAlloc/EPT-v0", seed=1, policy_kwargs=SMALL)
     fresh.load_replay_buffer(tmp_path / "buffer")
     assert fresh.replay_buffer.size() == model.replay_buffer.size() == 25
-    np.testing.assert_array_equal(fresh.replay_buffer.pick_rank, model.replay_buffer.pick_rank)
+    np.testing.assert_array_equal(fresh.replay_buffer.pick_steps, model.replay_buffer.pick_steps)
     np.testing.assert_array_equal(fresh.replay_buffer.candidates, model.replay_buffer.candidates)
     assert model.replay_buffer.nbytes_per_transition() > 0
+    # A buffer pickled with the pick steps counted from 0 (−1: not picked) loads with the same samples.
+    state = dict(vars(model.replay_buffer))
+    state["pick_rank"] = state.pop("pick_steps") - 1
+    (tmp_path / "old.pkl").write_bytes(pickle.dumps(state))
+    old = TwoStageReplayBuffer.__new__(TwoStageReplayBuffer)
+    old.__setstate__(pickle.loads((tmp_path / "old.pkl").read_bytes()))
+    np.testing.assert_array_equal(old.pick_steps, model.replay_buffer.pick_steps)
+    assert (model.replay_buffer.pick_steps[:25] > 0).any() and (model.replay_buffer.pick_steps[:25] == 0).any()
 
 
 def test_same_seed_same_run():

@@ -2,8 +2,9 @@
 
 Besides SB3's Dict replay data it stores, per transition, the candidate sets of the pre-assignment
 (``candidates[j, i]``: entity i was a candidate of task j when j was decoded) and the pick order of the select stage
-(``pick_rank[j, i]``: step at which task j picked entity i, −1 if not picked). The environment action is derived
-from them and stored as SB3 does.
+(``pick_steps[j, i]``: 1 + the step at which task j picked entity i, 0 if not picked; zero means "not picked" so that
+the array is allocated lazily, like SB3's own ``np.zeros`` arrays, and a model built for evaluation never touches its
+memory). The environment action is derived from them and stored as SB3 does.
 """
 
 from __future__ import annotations
@@ -91,7 +92,12 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         index_dtype = np.int16 if N < 2**15 else np.int32
         self.actions = np.zeros((self.buffer_size, self.n_envs, N), dtype=index_dtype)
         self.candidates = np.zeros((self.buffer_size, self.n_envs, M, N), dtype=bool)
-        self.pick_rank = np.full((self.buffer_size, self.n_envs, M, N), -1, dtype=index_dtype)
+        self.pick_steps = np.zeros((self.buffer_size, self.n_envs, M, N), dtype=index_dtype)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if "pick_rank" in state:  # a buffer pickled with ``pick_rank`` (steps from 0, −1: not picked) loads too
+            state["pick_steps"] = state.pop("pick_rank") + 1
+        self.__dict__.update(state)
 
     def add(  # type: ignore[override]
         self,
@@ -104,7 +110,7 @@ class TwoStageReplayBuffer(DictReplayBuffer):
     ) -> None:
         env_action, cand, rank = unpack_decision(np.asarray(action).reshape(self.n_envs, -1), self.n_entities, self.n_tasks)
         self.candidates[self.pos] = cand
-        self.pick_rank[self.pos] = rank
+        self.pick_steps[self.pos] = rank + 1
         super().add(obs, next_obs, env_action, reward, done, infos)
 
     def _get_samples(  # type: ignore[override]
@@ -132,7 +138,7 @@ class TwoStageReplayBuffer(DictReplayBuffer):
             dones=self.to_torch(dones).reshape(-1, 1),
             rewards=self.to_torch(rewards).reshape(-1, 1),
             candidates=th.as_tensor(self.candidates[batch_inds, env_indices], device=self.device),
-            pick_rank=th.as_tensor(self.pick_rank[batch_inds, env_indices].astype(np.int64), device=self.device),
+            pick_rank=th.as_tensor(self.pick_steps[batch_inds, env_indices].astype(np.int64) - 1, device=self.device),
             discounts=discounts,
         )
 
@@ -154,6 +160,6 @@ class TwoStageReplayBuffer(DictReplayBuffer):
     def nbytes_per_transition(self) -> int:
         """Bytes stored per transition (observations, next observations, decision, reward, flags)."""
         total = sum(v.nbytes for v in self.observations.values()) + sum(v.nbytes for v in self.next_observations.values())
-        total += self.actions.nbytes + self.candidates.nbytes + self.pick_rank.nbytes
+        total += self.actions.nbytes + self.candidates.nbytes + self.pick_steps.nbytes
         total += self.rewards.nbytes + self.dones.nbytes + self.timeouts.nbytes
         return total // (self.buffer_size * self.n_envs)
