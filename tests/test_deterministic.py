@@ -107,7 +107,7 @@ def fingerprint(name: str) -> dict[str, Any]:
     actions = [model.predict(env.reset(seed=100 + s)[0], deterministic=True)[0] for s in range(3)]
     logged = [{k: float.hex(v) for k, v in rec.items() if not k.startswith("time/")} for rec in capture.records]
     return {
-        "decisions": _digest(buf.actions[:n], buf.candidates[:n], buf.pick_rank[:n], buf.rewards[:n]),
+        "decisions": _digest(buf.actions[:n], buf.candidates[:n], buf.pick_steps[:n] - 1, buf.rewards[:n]),
         "parameters": hashlib.sha256("".join(params).encode()).hexdigest()[:24],
         "predict": _digest(*actions),
         "logged": logged,

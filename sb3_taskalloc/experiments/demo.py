@@ -34,7 +34,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 #: Envs that run side by side in the DAgger rollouts and in the held-out evaluation (one batched decision for all).
-ROLLOUT_ENVS, EVAL_ENVS = 4, 10
+ROLLOUT_ENVS, EVAL_ENVS = 4, 60
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -170,9 +170,13 @@ def report(
     )
     model = models["TwoStageSAC"]
     gif, ret = save_gif(gym.make(args.env, render_mode="rgb_array"), model, out / "episode.gif")
+
+    def mean_se(diff: np.ndarray) -> list[float]:
+        return [float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(diff.size))]
+
     record = {"env": args.env, "steps": args.steps, "n_envs": args.n_envs, "dagger_iterations": args.dagger_iterations,
               "train_seconds": train_s, "eval": results, "eval_curve": points, "dagger_curve": rollouts,
-              "gain": [float(gain.mean()), float(gain.std(ddof=1) / np.sqrt(gain.size))]}  # fmt: skip
+              "gain": mean_se(gain), "over_greedy": mean_se(over_greedy)}  # fmt: skip
     (out / "results.json").write_text(json.dumps(record, indent=2))
     print(f"wrote {png}, {gif} (episode return {ret:.1f}), {out / 'two_stage_sac.zip'}, {out / 'results.json'}")
 
