@@ -187,6 +187,33 @@ def test_cheapest_team_is_as_profitable_as_the_milp(seed):
     assert 5 < kept < 40  # both outcomes occur
 
 
+def test_the_lagrangian_screen_changes_no_team(monkeypatch):
+    """The screen before the LP relaxation bounds every cover's cost from below (it is at most the LP's optimum), so
+    ``cheapest_team`` returns the same teams with it as without it; it settles some tasks without the LP."""
+    from scipy.optimize import linprog
+
+    from sb3_taskalloc.baselines import milp
+
+    rng = np.random.default_rng(7)
+    instances = [one_task_instance(rng, int(rng.integers(1, 61)), int(rng.integers(1, 4))) for _ in range(60)]
+    for supply, demand, _, cost in instances:
+        u = np.minimum(supply, demand)
+        keys, counts = np.unique(np.column_stack([cost, u]), axis=0, return_counts=True)
+        lp = linprog(keys[:, 0], A_ub=-keys[:, 1:].T, b_ub=-demand, bounds=np.column_stack([0 * counts, counts]))
+        if lp.status == 0:
+            bound, lam = milp.lagrangian_bound(keys[:, 0], keys[:, 1:], counts, demand, np.zeros(len(demand)))
+            assert (lam >= 0).all() and bound <= lp.fun + 1e-9
+    lps = []
+    real_lp = milp.linprog
+    monkeypatch.setattr(milp, "linprog", lambda *a, **k: lps.append(1) or real_lp(*a, **k))
+    screened = [milp.cheapest_team(cost, np.minimum(s, d), d, r, node_limit=10**6) for s, d, r, cost in instances]
+    with_screen = len(lps)
+    monkeypatch.setattr(milp, "SCREEN_PASSES", 0)
+    plain = [milp.cheapest_team(cost, np.minimum(s, d), d, r, node_limit=10**6) for s, d, r, cost in instances]
+    assert all(np.array_equal(a, b) for a, b in zip(screened, plain, strict=True))
+    assert with_screen < len(lps) - with_screen  # fewer LPs with the screen than without
+
+
 def test_max_profit_team_hands_a_long_search_to_highs(monkeypatch):
     """A search that reaches its node limit gives up (None) rather than return an unproven team, and
     :func:`max_profit_team` then solves the task with HiGHS, with the caller's limits: the same profit either way; so

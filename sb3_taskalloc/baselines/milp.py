@@ -124,6 +124,9 @@ def max_profit_cover(
     return x, y, res
 
 
+#: Rounds of :func:`lagrangian_bound` by which :func:`cheapest_team` screens a task before its LP relaxation.
+SCREEN_PASSES = 3
+
 # Nodes of :func:`cheapest_team`'s search before :func:`max_profit_team` hands a task to HiGHS: on the DAgger labels of
 # trained RBF, MT and EPT models all tasks but about one in 600 finish within it (docs/benchmarks.md, "Exact teams by
 # branch and bound").
@@ -142,9 +145,12 @@ def cheapest_team(
 
     Entities with c_i ≤ 0 join any team (they lower its cost). The others are grouped by identical (c_i, u_i) and the
     search branches on how many of a group join, most first, in the order of their reduced costs c_i − λ·u_i under the
-    duals λ of the LP relaxation. A node is cut by the Lagrangian bound λ·r + Σ min(0, c − λ·u) over the groups not yet
-    decided (r: the demand still uncovered), by r_k times the lowest cost per unit of resource k among them, or when
-    they cannot cover r. The result is exact; of equally cheap teams the first found is kept.
+    duals λ of the LP relaxation. Before the LP, up to :data:`SCREEN_PASSES` rounds of :func:`lagrangian_bound` from
+    λ = 0 return "no team" where they already bound every team's cost at ``budget`` or more (the LP's bound is at least
+    as high, so the result is the same; this spares four in five LPs of DAgger's labels). A node is cut by the
+    Lagrangian bound λ·r + Σ min(0, c − λ·u) over the groups not yet decided (r: the demand still uncovered), by r_k
+    times the lowest cost per unit of resource k among them, or when they cannot cover r. The result is exact; of
+    equally cheap teams the first found is kept.
 
     :param cost: (n,) the entities' costs for the task
     :param useful: (n, K) what each entity contributes to each resource, min(supply, demand) in the MILP's formulation
@@ -168,11 +174,16 @@ def cheapest_team(
     cand = np.flatnonzero(~team & (u > 0).any(1))
     if len(cand) == 0 or (u[cand].sum(0) < r0 - eps).any():
         return np.zeros(n, bool)
+    r0 = r0 - eps  # the search covers r0 − eps, so that its bounds hold for the teams it accepts
+    lam, ones = np.zeros(len(r0)), np.ones(len(cand))
+    for _ in range(SCREEN_PASSES):  # most tasks are not worth covering, and a Lagrangian bound shows it without the LP
+        bound, lam = lagrangian_bound(cost[cand], u[cand], ones, r0, lam)
+        if spent0 + bound >= budget:
+            return np.zeros(n, bool)
     keys, inverse, counts = np.unique(np.column_stack([cost[cand], u[cand]]), axis=0, return_inverse=True, return_counts=True)
     if len(keys) > TEAM_MAX_GROUPS:
         return None
     c, ug = keys[:, 0], keys[:, 1:]
-    r0 = r0 - eps  # the search covers r0 − eps, so that its bounds hold for the teams it accepts
     lp = linprog(c, A_ub=-ug.T, b_ub=-r0, bounds=np.column_stack([np.zeros(len(c)), counts]), method="highs")
     if lp.status == 2 or (lp.status == 0 and spent0 + lp.fun >= budget):  # the LP bounds every team's cost from below
         return np.zeros(n, bool)
@@ -194,6 +205,28 @@ def cheapest_team(
                 wanted[g] -= 1
         return team
     return np.zeros(n, bool)
+
+
+def lagrangian_bound(
+    cost: np.ndarray, useful: np.ndarray, counts: np.ndarray, r: np.ndarray, start: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """A lower bound on the cost of covering ``r`` with up to ``counts[h]`` copies of groups (c_h, u_h): the Lagrangian
+    bound λ·r + Σ n_h min(0, c_h − λ·u_h) with u capped at r (any λ ≥ 0 gives one), λ raised from ``start`` by one exact
+    line search along each λ_k in turn. :return: the bound and λ"""
+    u = np.minimum(useful, r)
+    lam = start.copy()
+    for k in range(len(r)):
+        pos = u[:, k] > 0
+        if not pos.any():
+            continue
+        # Along λ_k the bound's slope is r_k − Σ n_h u_hk over the groups past their breakpoint, where c_h − λ·u_h turns
+        # negative: its maximum is the first breakpoint at which those groups supply r_k.
+        brk = (cost - u @ lam + u[:, k] * lam[k])[pos] / u[pos, k]
+        srt = np.argsort(brk)
+        j = int(np.searchsorted(np.cumsum((counts[pos] * u[pos, k])[srt]), r[k]))
+        if j < len(srt):  # else the groups cannot supply r_k (no cover exists; the callers cut such a node)
+            lam[k] = max(float(brk[srt[j]]), 0.0)
+    return float(lam @ r + (np.minimum(0.0, cost - u @ lam) * counts).sum()), lam
 
 
 class _TeamSearch:
@@ -224,24 +257,8 @@ class _TeamSearch:
         self.best_cost, self.best_take = 0.0, list[int]()
 
     def _dual_bound(self, g: int, r: list[float], start: np.ndarray) -> tuple[float, np.ndarray]:
-        """A Lagrangian bound of groups g.. with ``r`` uncovered, λ·r + Σ n_h min(0, c_h − λ·u_h) with u capped at r (any
-        λ ≥ 0 gives one), λ improved from the parent's by one exact line search along each λ_k: :return: it and λ"""
-        rr = np.asarray(r)
-        u = np.minimum(self.u_np[g:], rr)
-        c, n = self.c_np[g:], self.n_np[g:]
-        lam = start.copy()
-        for k in self.ks:
-            pos = u[:, k] > 0
-            if not pos.any():
-                continue
-            # Along λ_k the bound's slope is r_k − Σ n_h u_hk over the groups past their breakpoint, where c_h − λ·u_h
-            # turns negative: its maximum is the first breakpoint at which those groups supply r_k.
-            brk = (c - u @ lam + u[:, k] * lam[k])[pos] / u[pos, k]
-            srt = np.argsort(brk)
-            j = int(np.searchsorted(np.cumsum((n[pos] * u[pos, k])[srt]), rr[k]))
-            if j < len(srt):  # else the groups cannot supply r_k, a node the caller has cut
-                lam[k] = max(float(brk[srt[j]]), 0.0)
-        return float(lam @ rr + (np.minimum(0.0, c - u @ lam) * n).sum()), lam
+        """:func:`lagrangian_bound` of groups g.. with ``r`` uncovered, from the parent's λ"""
+        return lagrangian_bound(self.c_np[g:], self.u_np[g:], self.n_np[g:], np.asarray(r), start)
 
     def run(self, r0: np.ndarray, budget: float) -> list[int] | None:
         """:return: the count taken of each group (empty: no team cheaper than ``budget``), None at the node limit"""
