@@ -23,8 +23,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--env", type=full_env_id, default="TaskAlloc/MT-v0", help="environment id")
     parser.add_argument("--steps", type=int, default=600, help="training env steps (all envs together)")
     parser.add_argument("--n-envs", type=int, default=8, help="envs collected at once (one batched decision for all)")
-    parser.add_argument("--dagger-iterations", type=int, default=8, help="DAgger iterations of the pointer after SAC")
-    parser.add_argument("--dagger-episodes", type=int, default=4, help="episodes rolled out per DAgger iteration")
+    parser.add_argument("--dagger-iterations", type=int, default=16, help="DAgger iterations of the pointer after SAC")
+    parser.add_argument("--dagger-episodes", type=int, default=2, help="episodes rolled out per DAgger iteration")
     parser.add_argument("--eval-episodes", type=int, default=60, help="held-out evaluation episodes of every agent")
     parser.add_argument("--eval-every", type=int, default=300, help="env steps between the curve's evaluations")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
@@ -34,7 +34,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 #: Envs that run side by side in the DAgger rollouts and in the held-out evaluation (one batched decision for all).
-ROLLOUT_ENVS, EVAL_ENVS = 4, 60
+ROLLOUT_ENVS, EVAL_ENVS = 2, 60
 
 
 def main(argv: list[str] | None = None) -> None:
