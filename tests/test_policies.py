@@ -653,3 +653,41 @@ def test_logit_scale_multiplies_the_pre_assign_logits():
     for bad in (0.0, -1.0, float("inf")):
         with pytest.raises(ValueError, match="logit_scale"):
             make_policy(env, logit_scale=bad)
+
+
+@pytest.mark.parametrize("env_id", ["TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"])
+def test_a_fixed_length_decode_picks_alike_and_traces_whole(env_id):
+    """``decode_round(fixed_picks=True)`` runs all N pick steps with no host check in between: the same pick orders,
+    costs and kept teams as the loop that stops once no task is active (argmax, and samples from a seeded global
+    stream over 8 copies of the round); on MT the tracer of ``torch.compile(fullgraph=True)``
+    (``torch._dynamo.explain``) finds one graph and no break in it (RBF's 50 steps trace alike, in twice the time)."""
+    import torch._dynamo
+
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.two_stage_sac.select_stage import decode_round
+
+    policy = TwoStageSAC.from_zoo(env_id, seed=0, n_envs=1).policy
+    obs, _ = gym.make(env_id).reset(seed=3)
+    rounds: list = []
+    with th.no_grad():
+        policy.decide(policy.parse(policy.obs_to_tensor(obs)[0]), deterministic=True, rounds_out=rounds)
+        one, task_of = rounds[0]
+        view = ObsView(*(x.repeat_interleave(8, 0) for x in one))
+        task_of = task_of.repeat_interleave(8, 0)
+        head = policy.selector.head
+        for deterministic in (True, False):
+            th.manual_seed(0)
+            stops = decode_round(head, view, task_of, deterministic, temperature=2.0)
+            th.manual_seed(0)
+            fixed = decode_round(head, view, task_of, deterministic, temperature=2.0, fixed_picks=True)
+            assert th.equal(stops.rank, fixed.rank) and th.equal(stops.cost, fixed.cost)
+            assert th.equal(stops.kept(), fixed.kept())
+            assert 0 <= int(stops.rank.max()) < task_of.shape[1] - 1  # picks were made, and the fixed loop ran on
+        assert (stops.rank != stops.rank[:1]).any()  # the sampled copies differ
+
+        def decode(v: ObsView, t: th.Tensor) -> th.Tensor:
+            return decode_round(head, v, t, False, fixed_picks=True).rank
+
+        if env_id == "TaskAlloc/MT-v0":
+            explained = torch._dynamo.explain(decode)(view, task_of)
+            assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons

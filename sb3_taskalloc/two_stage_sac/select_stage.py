@@ -240,6 +240,7 @@ def decode_round(
     uniform: bool = False,
     temperature: float = 1.0,
     generator: th.Generator | None = None,
+    fixed_picks: bool = False,
 ) -> SelectState:
     """Decode the teams of every task of one round in parallel (one pick per task per step).
 
@@ -248,13 +249,17 @@ def decode_round(
     :param deterministic: argmax picks (else sampled)
     :param temperature: T of sampled picks, drawn from softmax(logits / T)
     :param generator: the random stream of sampled picks (None: torch's global one)
+    :param fixed_picks: run all N pick steps, a done task's picks masked out (``valid`` false), with no host check in
+        between: a loop of fixed length and shapes that ``torch.compile(fullgraph=True)`` traces without a graph break
+        (with ``generator=None``; a generator object breaks the graph). The teams and pick orders are the same as the
+        default loop's, which stops once no task is active: on the CPU that check costs nothing and saves the steps
     """
     st = SelectState(view, task_of)
     B, M, N = st.seg.shape
     seg = task_of.clamp_min(0)
     d = None if head is None or uniform else head.embed_entities(view)
     for t in range(N):
-        if not bool(st.active.any()):
+        if not fixed_picks and not bool(st.active.any()):
             break
         if d is None:
             logits = th.zeros(B, N, device=task_of.device)
