@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import csv
 import dataclasses
+import json
 import multiprocessing as mp
 import os
 import re
@@ -104,6 +105,11 @@ def test_smoke_table_is_well_formed(smoke_tables, env):
         assert (smoke_tables / env / "curves.png").stat().st_size > 0
     goal = r"Ours / best planner \((GA|PSO|SOS)\) on the training env: (-?\d+\.\d+|n/a)"
     assert re.search(goal, (smoke_tables / env / "table.md").read_text())
+    # The per-step MILP's gap, filed per cell and pooled under the table.
+    gaps = json.loads((smoke_tables / env / "milp_gaps.json").read_text())
+    assert "train|0" in gaps and all(g["solves"] > 0 and 0 <= g["stopped"] <= 1 for g in gaps.values())
+    line = r"MILP: HiGHS with \{.*'node_limit': 5\} per solve; \d+% of \d+ solves stopped short of proven optimality"
+    assert re.search(line, (smoke_tables / env / "table.md").read_text())
 
 
 def test_resume_computes_only_missing_cells(smoke_tables):

@@ -369,6 +369,16 @@ class MILPAllocator(Allocator):
         return {"solves": float(gaps.size), "stopped": float((gaps > self.mip_rel_gap).mean()),
                 "mean_gap": float(gaps.mean()), "max_gap": float(gaps.max())}  # fmt: skip
 
+    @staticmethod
+    def pooled_gap_summary(summaries: list[dict[str, float]]) -> dict[str, float]:
+        """:meth:`gap_summary` of the solves of several allocators (or runs) together."""
+        solves = sum(s["solves"] for s in summaries)
+        if not solves:
+            return {"solves": 0.0, "stopped": 0.0, "mean_gap": 0.0, "max_gap": 0.0}
+        return {"solves": solves, "stopped": sum(s["stopped"] * s["solves"] for s in summaries) / solves,
+                "mean_gap": sum(s["mean_gap"] * s["solves"] for s in summaries) / solves,
+                "max_gap": max(s["max_gap"] for s in summaries if s["solves"])}  # fmt: skip
+
     def allocate(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         import time
 

@@ -131,14 +131,14 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
 
 def milp_gap(run: LearnRun, records: list[dict[str, Any]]) -> str:
     """How the per-step MILP reference stopped, over every seed's solves (records of earlier versions have no gap)."""
+    from sb3_taskalloc.baselines import MILPAllocator
+
     gaps = [r["MILP gap"] for r in records if "MILP gap" in r]
     if not gaps:
         return ""
-    solves = sum(g["solves"] for g in gaps)
-    stopped = sum(g["stopped"] * g["solves"] for g in gaps) / max(solves, 1)
-    mean = sum(g["mean_gap"] * g["solves"] for g in gaps) / max(solves, 1)
-    return (f"; the MILP stops at {run.milp_node_limit} HiGHS nodes per solve: {stopped:.0%} of {int(solves)} solves short "
-            f"of proven optimality, mean gap {mean:.4f}, largest {max(g['max_gap'] for g in gaps):.4f}")  # fmt: skip
+    g = MILPAllocator.pooled_gap_summary(gaps)
+    return (f"; the MILP stops at {run.milp_node_limit} HiGHS nodes per solve: {g['stopped']:.0%} of {int(g['solves'])} "
+            f"solves short of proven optimality, mean gap {g['mean_gap']:.4f}, largest {g['max_gap']:.4f}")  # fmt: skip
 
 
 def targets(run: LearnRun, means: dict[str, list[float]], records: list[dict[str, Any]]) -> list[str]:
