@@ -107,7 +107,8 @@ def test_smoke_table_is_well_formed(smoke_tables, env):
     assert re.search(goal, (smoke_tables / env / "table.md").read_text())
     # The per-step MILP's gap, filed per cell and pooled under the table.
     gaps = json.loads((smoke_tables / env / "milp_gaps.json").read_text())
-    assert "train|0" in gaps and all(g["solves"] > 0 and 0 <= g["stopped"] <= 1 for g in gaps.values())
+    assert any(key.startswith("train|0|") for key in gaps)  # row, seed and the cell's configuration
+    assert all(g["solves"] > 0 and 0 <= g["stopped"] <= 1 for g in gaps.values())
     line = r"MILP: HiGHS with \{.*'node_limit': 5\} per solve; \d+% of \d+ solves stopped short of proven optimality"
     assert re.search(line, (smoke_tables / env / "table.md").read_text())
 

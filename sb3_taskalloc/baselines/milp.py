@@ -365,7 +365,7 @@ class MILPAllocator(Allocator):
         relative MIP gap (how far from optimal the allocations may be)."""
         gaps = np.asarray(self.gaps, dtype=float)
         if gaps.size == 0:
-            return {"solves": 0.0, "stopped": 0.0, "mean_gap": 0.0, "max_gap": 0.0}
+            return self.pooled_gap_summary([])
         return {"solves": float(gaps.size), "stopped": float((gaps > self.mip_rel_gap).mean()),
                 "mean_gap": float(gaps.mean()), "max_gap": float(gaps.max())}  # fmt: skip
 

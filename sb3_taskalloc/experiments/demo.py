@@ -138,14 +138,17 @@ def report(
         found, _ = evaluate_policy(agent, eval_env, args.eval_episodes, return_episode_rewards=True, callback=note)  # type: ignore[arg-type]
         returns[name] = np.asarray(found, dtype=float)[sorted(range(len(which)), key=which.__getitem__)]  # paired order
         results[name] = (float(np.mean(returns[name])), float(np.std(returns[name])))
-    gain = returns["TwoStageSAC"] - returns["TwoStageSAC untrained"]
-    over_greedy = returns["TwoStageSAC"] - returns["Greedy"]
+    # The paired per-episode gain of the trained policy over each, mean ± standard error.
+    paired = {}
+    for what, other in (("untrained", "TwoStageSAC untrained"), ("Greedy", "Greedy")):
+        diff = returns["TwoStageSAC"] - returns[other]
+        paired[what] = [float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(diff.size))]
     trained = f"trained {args.steps} steps + {args.dagger_iterations} DAgger iterations, {train_s:.0f} s"
     print(f"\n{args.env}: return over {args.eval_episodes} held-out episodes ({trained})")
     for name, (mean, std) in results.items():
         print(f"  {name:22s} {mean:9.1f} ± {std:.1f}")
-    for what, diff in (("untrained", gain), ("Greedy", over_greedy)):
-        print(f"  trained − {what} per episode: {diff.mean():+.1f} ± {diff.std(ddof=1) / np.sqrt(diff.size):.1f} (s.e.)")
+    for what, (mean, se) in paired.items():
+        print(f"  trained − {what} per episode: {mean:+.1f} ± {se:.1f} (s.e.)")
     ends = np.array([t for t, _ in ends_], dtype=float)
     end = rollouts[-1][0] if rollouts else args.steps
     n = args.eval_episodes
@@ -170,13 +173,9 @@ def report(
     )
     model = models["TwoStageSAC"]
     gif, ret = save_gif(gym.make(args.env, render_mode="rgb_array"), model, out / "episode.gif")
-
-    def mean_se(diff: np.ndarray) -> list[float]:
-        return [float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(diff.size))]
-
     record = {"env": args.env, "steps": args.steps, "n_envs": args.n_envs, "dagger_iterations": args.dagger_iterations,
               "train_seconds": train_s, "eval": results, "eval_curve": points, "dagger_curve": rollouts,
-              "gain": mean_se(gain), "over_greedy": mean_se(over_greedy)}  # fmt: skip
+              "gain": paired["untrained"], "over_greedy": paired["Greedy"]}  # fmt: skip
     (out / "results.json").write_text(json.dumps(record, indent=2))
     print(f"wrote {png}, {gif} (episode return {ret:.1f}), {out / 'two_stage_sac.zip'}, {out / 'results.json'}")
 

@@ -349,7 +349,7 @@ class TableRun:
                 return f"{evaluate(None, env_id, budget, seed, method, lambda e: cls(e, seed=seed, **planner_kwargs)):.6g}"
             agent = cls(**budget.milp) if method.target == "MILPAllocator" else cls()
             value = f"{evaluate(agent, env_id, budget, seed, method):.6g}"
-            table_report.record_milp_gap(self, row, seed, agent)  # how far from optimal the MILP's cell may be
+            table_report.record_milp_gap(self, name, row, seed, agent)  # how far from optimal the MILP's cell may be
             return value
         if row.startswith("from scratch"):
             if name not in SCRATCH_METHODS:

@@ -37,25 +37,27 @@ def logged_returns(logs: list[Path]) -> np.ndarray:
     return np.array([r for _, r in sorted(ends)])
 
 
-def record_milp_gap(run: TableRun, row: str, seed: int, agent: object) -> None:
+def record_milp_gap(run: TableRun, name: str, row: str, seed: int, agent: object) -> None:
     """File the per-step MILP's :meth:`~sb3_taskalloc.baselines.MILPAllocator.gap_summary` of one cell in
-    ``milp_gaps.json`` beside the cells (other agents: nothing)."""
+    ``milp_gaps.json`` beside the cells, under the cell's configuration (other agents: nothing)."""
     from sb3_taskalloc.baselines import MILPAllocator
 
     if isinstance(agent, MILPAllocator):
         path = run.folder / "milp_gaps.json"
         gaps = json.loads(path.read_text()) if path.exists() else {}
-        atomic_write_text(path, json.dumps({**gaps, f"{row}|{seed}": agent.gap_summary()}, indent=1) + "\n")
+        key = f"{row}|{seed}|{run.cell_key(name, row)}"
+        atomic_write_text(path, json.dumps({**gaps, key: agent.gap_summary()}, indent=1) + "\n")
 
 
 def milp_gap_line(run: TableRun) -> list[str]:
-    """The table's line on how the per-step MILP stopped, over the filed cells of its seeds (none: no line)."""
+    """The table's line on how the per-step MILP stopped, over its finished cells of this configuration whose gap was
+    filed (none: no line)."""
     from sb3_taskalloc.baselines import MILPAllocator
 
     path = run.folder / "milp_gaps.json"
     gaps = json.loads(path.read_text()) if path.exists() else {}
-    cells = [g for key, g in gaps.items() if int(key.rsplit("|", 1)[1]) < run.seeds]
-    g = MILPAllocator.pooled_gap_summary(cells)
+    keys = [f"{row}|{seed}|{run.cell_key(name, row)}" for name, row, seed in run.done() if name == "MILP" and seed < run.seeds]
+    g = MILPAllocator.pooled_gap_summary([gaps[k] for k in keys if k in gaps])
     if not g["solves"]:
         return []
     limits = run.budget.milp or "its defaults"
