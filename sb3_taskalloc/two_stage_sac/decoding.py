@@ -264,8 +264,10 @@ def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:
         raise ValueError(f"decoding strategy {name!r}: {error}") from None
 
 
-#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up.
+#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up; and the
+#: argmax at both stages, which the future critic's target and baseline decide by whatever decoder a user set.
 SAMPLED, UNIFORM = get_decoding_strategy("sampled"), get_decoding_strategy("uniform")
+ARGMAX = get_decoding_strategy("argmax")
 
 
 def decide_preassigned(

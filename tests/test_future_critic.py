@@ -1,0 +1,144 @@
+"""The future critic Q = P + F (``TAMPolicy(mixer="future")``): the exact step profit P against the env's commitment
+reward, team by team, and its update's target and actor loss against their closed forms."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from torch.nn import functional as F
+
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.common.policies import FutureCritic, executed_assignment, executed_profit
+from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, decide_preassigned
+from sb3_taskalloc.two_stage_sac.updates import FuturePreAssignUpdate
+
+
+def team_by_team(obs: dict[str, np.ndarray], action: np.ndarray) -> float:
+    """Σ over the tasks the action serves of (reward − Σ its members' pair costs), by loops over the env action."""
+    M = obs["task_reward"].shape[0]
+    profit = 0.0
+    for j in range(M):
+        members = np.flatnonzero(action == j)
+        if len(members):
+            profit += float(obs["task_reward"][j]) - float(obs["pair_cost"][members, j].sum())
+    return profit
+
+
+@pytest.mark.parametrize("env_id", ["TaskAlloc/MT-v0", "TaskAlloc/EPT-v0", "TaskAlloc/RBF-v0"])
+def test_the_step_profit_is_the_commitment_reward_team_by_team(env_id: str) -> None:
+    """P(s, a) recomputed team by team equals ``executed_profit``; it is the commitment reward of every step on MT and
+    EPT, and of the first step on RBF (later RBF steps also settle the decay of teams still travelling)."""
+    model = TwoStageSAC("TAMPolicy", env_id, policy_kwargs={"mixer": "future"}, seed=0, device="cpu")
+    env = gym.make(env_id)
+    served = 0
+    for seed in range(2):
+        obs, _ = env.reset(seed=seed)
+        for t in range(25):
+            with th.no_grad():
+                view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
+                decision = model.policy.decide(view, deterministic=False)
+            action = decision.env_action[0].numpy()
+            profit = float(executed_profit(view, decision.env_action)[0])
+            assert profit == pytest.approx(team_by_team(obs, action), rel=1e-5, abs=1e-4)
+            served += int((action < len(obs["task_reward"])).any())
+            obs, _, terminated, truncated, info = env.step(action)
+            if t == 0 or env_id != "TaskAlloc/RBF-v0":
+                assert info["commitment_reward"] == pytest.approx(profit, rel=1e-5, abs=1e-4)
+            if terminated or truncated:
+                break
+    assert served > 0  # some step sent a team, so the comparison covered a non-zero profit
+
+
+@pytest.fixture(scope="module")
+def future_model() -> TwoStageSAC:
+    model = TwoStageSAC(
+        "TAMPolicy",
+        "TaskAlloc/MT-v0",
+        policy_kwargs={"mixer": "future", "hidden_dim": 16},
+        learning_starts=40,
+        batch_size=16,
+        buffer_size=1000,
+        seed=0,
+        device="cpu",
+    )
+    model.learn(60)
+    return model
+
+
+def test_the_future_critic_is_chosen_by_name_and_trains(future_model: TwoStageSAC) -> None:
+    assert all(isinstance(q, FutureCritic) for q in future_model.critic.q_networks)
+    assert isinstance(future_model.updates[0], FuturePreAssignUpdate)
+    assert np.isfinite(future_model.logger.name_to_value["train/critic_loss"])
+    assert np.isfinite(future_model.logger.name_to_value["train/actor_loss"])
+
+
+def test_the_future_critics_value_is_the_profit_plus_the_mixed_future(future_model: TwoStageSAC) -> None:
+    data = future_model.replay_buffer.sample(16)
+    view = future_model.policy.parse(data.observations)
+    actions = data.actions.long()
+    with th.no_grad():
+        values = future_model.critic.decision_values(view, data.candidates, actions)
+        for q, critic in zip(values, future_model.critic.q_networks, strict=True):
+            future = critic(view, executed_assignment(actions, view.reward.shape[1]))
+            th.testing.assert_close(q, executed_profit(view, actions) + future)
+    assert not th.equal(values[0], values[1])  # two critics, two values
+
+
+def test_the_future_critics_target_is_the_return_less_the_step_profit(future_model: TwoStageSAC) -> None:
+    """F^k(s, a) → r − P(s, a) + γ(1 − d)·[P(s′, a′) + min_k F̄^k(s′, a′)] with a′ the argmax decision at s′."""
+    m = future_model
+    data = m.replay_buffer.sample(16)
+    view, next_view = m.policy.parse(data.observations), m.policy.parse(data.next_observations)
+    dones = th.tensor([0.0, 1.0] * 8)
+    data = data._replace(dones=dones.reshape(-1, 1))
+    alpha = th.tensor(0.3)
+    with th.no_grad():
+        out = m.updates[0].critic_loss(view, next_view, data, alpha)
+        actions = data.actions.long()
+        nxt = decide_preassigned(m.policy, next_view, ARGMAX)
+        M = view.reward.shape[1]
+        next_q = th.stack(
+            [
+                executed_profit(next_view, nxt.env_action) + q(next_view, executed_assignment(nxt.env_action, M))
+                for q in m.critic_target.q_networks
+            ]
+        ).min(0)
+        profit = executed_profit(view, actions)
+        target_f = data.rewards.squeeze(-1) - profit + (1 - dones) * m.gamma * next_q.values
+        futures = [q(view, executed_assignment(actions, M)) for q in m.critic.q_networks]
+    th.testing.assert_close(out.target_q, target_f + profit)
+    th.testing.assert_close(out.loss, 0.5 * sum(F.mse_loss(f, target_f) for f in futures))
+    for current, f in zip(out.current, futures, strict=True):
+        th.testing.assert_close(current, f + profit)
+
+
+def test_the_actor_follows_the_sampled_decisions_advantage_over_the_argmax(future_model: TwoStageSAC) -> None:
+    """Where every sampled decision equals the argmax one, the policy-gradient term vanishes and only the entropy bonus
+    (and the prior's KL) remain; the loss reads the sampled decision's log-probability otherwise."""
+    m = future_model
+    update = m.updates[0]
+    view = m.policy.parse(m.replay_buffer.sample(16).observations)
+    alpha = th.tensor(0.2)
+    contexts = m.critic.contexts(view)
+    dist = m.actor(view)
+    prior_coef, m.prior_coef = m.prior_coef, 0.0
+    try:
+        th.manual_seed(3)
+        loss = update.actor_loss(view, dist, contexts, alpha)
+        loss.backward()
+        grad = [p.grad.clone() for p in m.actor.parameters() if p.grad is not None]
+        m.actor.zero_grad()
+        # κ → ∞ makes sampling the argmax: the advantage is 0 and the loss is the entropy term alone
+        scale, m.actor.logit_scale = m.actor.logit_scale, 1e6
+        th.manual_seed(3)
+        sharp = m.actor(view)
+        alone = update.actor_loss(view, sharp, contexts, alpha)
+        entropy = -(alpha * sharp.entropy().sum(1) / view.assignable.sum(1).clamp_min(1)).mean()
+        th.testing.assert_close(alone, entropy)
+    finally:
+        m.prior_coef = prior_coef
+        m.actor.logit_scale = scale
+        m.actor.zero_grad()
+    assert grad and any(g.abs().sum() > 0 for g in grad)
