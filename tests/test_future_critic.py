@@ -3,6 +3,9 @@ reward, team by team, and its update's target and actor loss against their close
 
 from __future__ import annotations
 
+import itertools
+from unittest.mock import patch
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -11,7 +14,8 @@ from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.policies import FutureCritic, executed_assignment, executed_profit
-from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, decide_preassigned
+from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, decide_preassigned, future_pair_values, get_decoding_strategy
 from sb3_taskalloc.two_stage_sac.updates import FuturePreAssignUpdate
 
 
@@ -142,3 +146,65 @@ def test_the_actor_follows_the_sampled_decisions_advantage_over_the_argmax(futur
         m.actor.logit_scale = scale
         m.actor.zero_grad()
     assert grad and any(g.abs().sum() > 0 for g in grad)
+
+
+def brute_force_best(view: ObsView, b: int, entities: np.ndarray, cost: np.ndarray) -> float:
+    """The most profitable assignment of ``entities`` to the open tasks of state ``b`` (or to none), where a task counts
+    only if its team covers its demand: Σ_j (r_j − Σ_{i ∈ team j} cost_ij), by enumerating every assignment."""
+    tasks = np.flatnonzero(view.task_mask[b].numpy())
+    supply, demand, reward = view.supply[b].numpy(), view.demand[b].numpy(), view.reward[b].numpy()
+    best = 0.0
+    for choice in itertools.product(range(len(tasks) + 1), repeat=len(entities)):
+        total, feasible = 0.0, True
+        for k, j in enumerate(tasks):
+            team = entities[np.asarray(choice) == k]
+            if len(team) == 0:
+                continue
+            if (supply[team].sum(0) < demand[j] - 1e-6).any():
+                feasible = False
+                break
+            total += float(reward[j]) - float(cost[team, j].sum())
+        if feasible:
+            best = max(best, total)
+    return best
+
+
+def test_the_value_aware_decoder_maximises_profit_plus_future_value(future_model: TwoStageSAC) -> None:
+    """With every pair allowed (``top`` = M) the value-aware decoder's first round is worth, by r − (c − g)⁺, the best
+    of all assignments enumerated; with g = 0 it decides as ``exact_top`` of the same ``top``; the policy of another
+    critic is refused."""
+    policy = future_model.policy
+    env = gym.make("TaskAlloc/MT-v0")
+    obs, _ = env.reset(seed=5)
+    states = []
+    for _ in range(12):
+        states.append(obs)
+        obs = env.step(future_model.predict(obs, deterministic=True)[0])[0]
+    view = policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in states]) for k in states[0]})[0])
+    # Five free trucks per state keep the enumeration small: (M + 1)^5 assignments.
+    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 5))
+    M = view.reward.shape[1]
+    with th.no_grad():
+        g = future_pair_values(policy, view)
+        assert bool((g[~view.valid] == 0).all()) and bool((g[view.valid] != 0).any())
+        adjusted = (view.pair_cost - g).clamp_min(0.0)
+        with future_model.decoding("value_top", top=M):
+            first = decide_preassigned(policy, view, policy.decoder)
+        team = (first.pick_rank >= 0) & first.kept.unsqueeze(-1)  # (B, M, N)
+        found = (first.kept * (view.reward - (team.float() * adjusted.transpose(1, 2)).sum(-1))).sum(-1)
+    checked = 0
+    for b in range(view.reward.shape[0]):
+        entities = np.flatnonzero(view.entity_mask[b].numpy())
+        if len(entities) == 0 or not bool(view.task_mask[b].any()):
+            continue
+        assert float(found[b]) == pytest.approx(brute_force_best(view, b, entities, adjusted[b].numpy()), abs=1e-3)
+        checked += 1
+    assert checked >= 3
+    zero = lambda _, v: th.zeros_like(v.pair_cost)  # noqa: E731
+    with th.no_grad(), patch("sb3_taskalloc.two_stage_sac.decoding.future_pair_values", zero):
+        no_future = decide_preassigned(policy, view, get_decoding_strategy("value_top", top=2))
+        exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
+    assert th.equal(no_future.env_action, exact.env_action)
+    paper = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"hidden_dim": 16}, device="cpu")
+    with pytest.raises(ValueError, match="mixer='future'"):
+        paper.predict(states[0], deterministic=True, decoder="value_top")
