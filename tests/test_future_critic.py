@@ -15,6 +15,7 @@ from torch.nn import functional as F
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.policies import FutureCritic, executed_assignment, executed_profit
 from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.experiments.bench.policy import decoder_rows
 from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, decide_preassigned, future_pair_values, get_decoding_strategy
 from sb3_taskalloc.two_stage_sac.updates import FuturePreAssignUpdate
 
@@ -208,3 +209,6 @@ def test_the_value_aware_decoder_maximises_profit_plus_future_value(future_model
     paper = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"hidden_dim": 16}, device="cpu")
     with pytest.raises(ValueError, match="mixer='future'"):
         paper.predict(states[0], deterministic=True, decoder="value_top")
+    # the decision-time benchmark times value_top for a model with the future critic only
+    assert "value_top" in [row[0] for row in decoder_rows(future_model)]
+    assert "value_top" not in [row[0] for row in decoder_rows(paper)]
