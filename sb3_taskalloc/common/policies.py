@@ -113,7 +113,7 @@ class FutureCritic(AMIXCritic):
     nothing where it stayed free) instead of the candidate sets, and learns only the future: its TD target is
     y − P(s, a) (:class:`~sb3_taskalloc.two_stage_sac.updates.FuturePreAssignUpdate`). P is computed from the
     observation (:func:`executed_profit`), so two decisions of one state differ in Q by their exact profit difference
-    plus what F learned of their futures.
+    plus what F learned of their futures (implementation detail 24).
     """
 
     def decision_value(self, ctx: AMIXContext, candidates: th.Tensor, env_action: th.Tensor) -> th.Tensor:

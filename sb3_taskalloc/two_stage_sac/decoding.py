@@ -220,7 +220,7 @@ class ValueTopDecoder(ExactTopDecoder):
     lowered by its learned future value g_ij = ∂F/∂a_ij (:func:`future_pair_values`), so each round's exact cover
     maximises this step's profit plus what the assignment leaves for later, to first order. Teams are weighed by the
     same objective: the pointer's argmax team against the exact cover of its candidates. With F = 0 it is
-    ``exact_top`` of the same ``top``.
+    ``exact_top`` of the same ``top`` (implementation detail 25).
     """
 
     name = "value_top"

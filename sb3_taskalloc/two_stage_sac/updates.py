@@ -180,7 +180,7 @@ class FuturePreAssignUpdate(PreAssignUpdate):
     Actor: the pre-assignment's policy gradient against the argmax as baseline (self-critical), −(Q(s, a_σ) −
     Q(s, a_g))·log π(c_σ|s) − α·H(s) (+ β·KL(π ‖ π₀)), where c_σ is a sampled first round, a_σ its decision and a_g the
     argmax decision. P enters exactly; the mean-field expectation of the paper's actor loss cannot carry it, since the
-    profit of a team is not a sum over its members.
+    profit of a team is not a sum over its members (implementation detail 24).
     """
 
     def critic_loss(
