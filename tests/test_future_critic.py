@@ -91,6 +91,22 @@ def test_the_future_critics_value_is_the_profit_plus_the_mixed_future(future_mod
     assert not th.equal(values[0], values[1])  # two critics, two values
 
 
+def test_the_future_value_is_linear_in_the_assignment(future_model: TwoStageSAC) -> None:
+    """Each F^k(s, a) − F^k(s, 0) is Σ_ij a_ij g^k_ij for any assignment a: the per-pair values the value-aware
+    decoder adds to the profit are the critic's whole dependence on the assignment."""
+    data = future_model.replay_buffer.sample(16)
+    view = future_model.policy.parse(data.observations)
+    B, N, M = view.pair_cost.shape
+    a = executed_assignment(th.randint(0, M + 1, (B, N)), M) * view.valid
+    for critic in future_model.critic.q_networks:
+        zero = th.zeros_like(view.pair_cost, requires_grad=True)
+        ctx = critic.context(view)
+        (g,) = th.autograd.grad(critic.mix(ctx, zero).sum(), zero)
+        with th.no_grad():
+            th.testing.assert_close(critic.mix(ctx, a) - critic.mix(ctx, zero), (a * g).sum((1, 2)), rtol=1e-4, atol=1e-4)
+        assert critic.team is None
+
+
 def test_the_future_critics_target_is_the_return_less_the_step_profit(future_model: TwoStageSAC) -> None:
     """F^k(s, a) → r − P(s, a) + γ(1 − d)·[P(s′, a′) + min_k F̄^k(s′, a′)] with a′ the argmax decision at s′."""
     m = future_model

@@ -108,8 +108,10 @@ class FutureCritic(AMIXCritic):
     """Q(s, a) = P(s, a) + F(s, a): the exact profit P of the teams a decision sends this step, plus F, the AMIX-mixed
     per-entity values of what the executed assignment leaves for later (``mixer="future"``).
 
-    The network is an :class:`AMIXCritic` (per-entity scores F_i(s, j), mixed by AMIX, with the team value); what
-    differs is what it is fed and taught. It reads the executed assignment a (an entity's task where its team was sent,
+    The network is an :class:`AMIXCritic` whose per-entity scores F_i(s, j) are mixed linearly
+    (:class:`~sb3_taskalloc.common.mixers.LinearAMIXMixer`, no team value), so F(s, a) = Σ_i ω_i(s) F_i(s, a_i) + β(s)
+    with ω_i ≥ 0: a sum of per-pair values an exact solver can add to the profit. What differs is also what it is fed
+    and taught. It reads the executed assignment a (an entity's task where its team was sent,
     nothing where it stayed free) instead of the candidate sets, and learns only the future: its TD target is
     y − P(s, a) (:class:`~sb3_taskalloc.two_stage_sac.updates.FuturePreAssignUpdate`). P is computed from the
     observation (:func:`executed_profit`), so two decisions of one state differ in Q by their exact profit difference

@@ -8,12 +8,11 @@ from the policy (its sizes and settings) and declares whether it is ``size_agnos
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import partial
 from typing import Any
 
 from torch import nn
 
-from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, TeamValue
+from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, LinearAMIXMixer, TeamValue
 from sb3_taskalloc.common.policies import AMIXCritic, FutureCritic, GlobalCritic
 from sb3_taskalloc.common.torch_layers import FlatScorer, PairScorer
 
@@ -28,12 +27,21 @@ def _flat_scorer(policy: Any, scale: float) -> nn.Module:
     return FlatScorer(N, M, Fe, Ft, policy.hidden_dim, policy.activation_fn)
 
 
-def _amix_critic(policy: Any, critic_class: type[AMIXCritic] = AMIXCritic) -> AMIXCritic:
+def _amix_critic(policy: Any) -> AMIXCritic:
     _, _, Fe, Ft, K = policy.dims
     settings = policy.mixer_kwargs
     mixer = AMIXMixer(Fe, Ft, policy.hidden_dim, settings["monotonic"], settings["hyper_bias"], policy.activation_fn)
     team = TeamValue(Ft, K, policy.hidden_dim, policy.activation_fn) if settings["team_value"] else None
-    return critic_class(policy._scorer(scale=1.0), mixer, team)  # critics unscaled: Q-values need no temperature
+    return AMIXCritic(policy._scorer(scale=1.0), mixer, team)  # critics unscaled: Q-values need no temperature
+
+
+def _future_critic(policy: Any) -> FutureCritic:
+    """The future critic's F (implementation detail 24): AMIX made linear in the per-entity values, without the team
+    value (P, computed exactly, already tells a covering team from one that falls short); ``mixer_kwargs`` sets only
+    its ``hyper_bias``."""
+    _, _, Fe, Ft, _ = policy.dims
+    mixer = LinearAMIXMixer(Fe, Ft, policy.hidden_dim, policy.mixer_kwargs["hyper_bias"], policy.activation_fn)
+    return FutureCritic(policy._scorer(scale=1.0), mixer)
 
 
 def _global_critic(policy: Any) -> GlobalCritic:
@@ -46,6 +54,6 @@ ENCODERS: dict[str, Callable[[Any, float], nn.Module]] = {"tam": _tam_scorer, "m
 #: ``mixer`` name -> one stage-1 critic.
 MIXERS: dict[str, Callable[[Any], AMIXCritic | GlobalCritic]] = {
     "amix": _amix_critic,
-    "future": partial(_amix_critic, critic_class=FutureCritic),
+    "future": _future_critic,
     "global": _global_critic,
 }

@@ -217,10 +217,10 @@ class ExactTopDecoder(ExactCoversDecoder):
 @register_decoder
 class ValueTopDecoder(ExactTopDecoder):
     """``exact_top`` on the objective P + F of the future critic (``TAMPolicy(mixer="future")``): each pair's cost is
-    lowered by its learned future value g_ij = ∂F/∂a_ij (:func:`future_pair_values`), so each round's exact cover
-    maximises this step's profit plus what the assignment leaves for later, to first order. Teams are weighed by the
-    same objective: the pointer's argmax team against the exact cover of its candidates. With F = 0 it is
-    ``exact_top`` of the same ``top`` (implementation detail 25).
+    lowered by its learned future value g_ij = ∂F/∂a_ij (:func:`future_pair_values`; F is linear in the assignment),
+    so each round's exact cover maximises this step's profit plus what the assignment leaves for later. Teams are
+    weighed by the same objective: the pointer's argmax team against the exact cover of its candidates. With F = 0 it
+    is ``exact_top`` of the same ``top`` (implementation detail 25).
     """
 
     name = "value_top"
@@ -244,8 +244,9 @@ class ValueTopDecoder(ExactTopDecoder):
 
 
 def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
-    """(B, N, M) g_ij = ∂ min_k F^k(s, a)/∂a_ij at a = 0 (every entity left free): the future critics' first-order value
-    of sending entity i to task j (:class:`~sb3_taskalloc.common.policies.FutureCritic`), 0 on invalid pairs."""
+    """(B, N, M) g_ij = ∂ min_k F^k(s, a)/∂a_ij at a = 0 (every entity left free): what sending entity i to task j adds
+    to the future critics' value (:class:`~sb3_taskalloc.common.policies.FutureCritic`), 0 on invalid pairs. Each F^k
+    is linear in a, so g is each critic's exact per-pair value (of the critic that is lower with every entity free)."""
     critic = policy.critic
     if critic is None or not all(isinstance(q, FutureCritic) for q in critic.q_networks):
         raise ValueError("the value_top decoder needs the future critic: train with TAMPolicy(mixer='future')")
@@ -260,8 +261,8 @@ def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
 
 def value_aware_view(policy: TAMPolicy, view: ObsView) -> ObsView:
     """``view`` with each valid pair's cost lowered by its future value (:func:`future_pair_values`), at least 0: the
-    exact solvers maximise reward − cost, so this makes them maximise P + F to first order (a pair whose future value
-    exceeds its cost costs nothing rather than paying, which keeps the team searches' bounds valid)."""
+    exact solvers maximise reward − cost, so this makes them maximise P + F (a pair whose future value exceeds its cost
+    costs nothing rather than paying, which keeps the team searches' bounds valid)."""
     return view._replace(pair_cost=(view.pair_cost - future_pair_values(policy, view)).clamp_min(0.0))
 
 

@@ -45,7 +45,8 @@ HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embe
 #: Default (κ, κ_s) of a rule-initialised policy (implementation detail 10): sampled decisions stay near the rule's argmax.
 RULE_LOGIT_SCALES = (100.0, 10.0)
 
-#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
+#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them, the
+#: "future" one reads only ``hyper_bias``: it is linear and monotonic, with no team value).
 MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
 
 
