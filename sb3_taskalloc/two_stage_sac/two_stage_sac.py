@@ -202,8 +202,7 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         # One update per trained stage: none for the pre-assignment of a policy without it ("W/o Pre").
         self.updates: list[stage.PreAssignUpdate | stage.SelectUpdate] = [stage.SelectUpdate(self)]
         if self.actor is not None:
-            update = stage.PREASSIGN_UPDATES.get(self.policy.mixer, stage.PreAssignUpdate)
-            self.updates.insert(0, update(self, learn_actor=self.train_preassign_actor))
+            self.updates.insert(0, stage.PreAssignUpdate(self, learn_actor=self.train_preassign_actor))
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor

@@ -16,15 +16,13 @@ from torch.nn import functional as F
 
 import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
-from sb3_taskalloc.common.distributions import MaskedCategorical
-from sb3_taskalloc.common.policies import CriticContext, executed_assignment, executed_profit
+from sb3_taskalloc.common.policies import CriticContext
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import (
     DivergenceError,
     check_finite_parameters,
     foreach_polyak_update,
 )
-from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, SAMPLED, decide_preassigned
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
@@ -136,9 +134,12 @@ class PreAssignUpdate:
         if not self.learn_actor:
             optimizer_step(m.critic.optimizer, critic.loss)
             return
-        # Actor, then one backward pass: the parameters are disjoint, so each network gets its own gradient.
+        # Actor: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)) on the critic values above (detail 3), + β·KL(π ‖ π₀)
+        # (detail 12). The parameters are disjoint, so one backward pass gives each network its own gradient.
         dist = m.actor(obs)
-        actor_loss = self.actor_loss(obs, dist, critic.contexts, alpha)
+        actor_loss = losses.preassign_actor_loss(
+            dist, m.critic, critic.contexts, obs, alpha, m.policy.actor_prior, m.prior_coef, m.entropy_bonus == "mean"
+        )
         logs["actor_loss"].append(actor_loss.item())
         m.critic.optimizer.zero_grad()
         m.actor.optimizer.zero_grad()
@@ -152,80 +153,10 @@ class PreAssignUpdate:
                 ent_loss = losses.ent_coef_loss(m.log_ent_coef, entropy.entropy, entropy.target)
                 logs["ent_coef_loss"].append(optimizer_step(m.ent_coef_optimizer, ent_loss))
 
-    def actor_loss(self, obs: ObsView, dist: MaskedCategorical, contexts: list[CriticContext], alpha: th.Tensor) -> th.Tensor:
-        """−α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)) on the critics' values (detail 3), + β·KL(π ‖ π₀) (detail 12)."""
-        m = self.model
-        assert m.critic is not None
-        per_entity = m.entropy_bonus == "mean"
-        return losses.preassign_actor_loss(
-            dist, m.critic, contexts, obs, alpha, m.policy.actor_prior, m.prior_coef, per_entity
-        )
-
     def update_target(self) -> None:
         m = self.model
         assert m.critic is not None and m.critic_target is not None
         foreach_polyak_update(m.critic.parameters(), m.critic_target.parameters(), m.tau)
-
-
-class FuturePreAssignUpdate(PreAssignUpdate):
-    """Stage 1 with the critic Q(s, a) = P(s, a) + F(s, a) (``mixer="future"``,
-    :class:`~sb3_taskalloc.common.policies.FutureCritic`): the exact profit P of the teams a decision sends is computed,
-    and the critics learn only F, the value of what the executed assignment leaves for later.
-
-    Critic: F^k(s, a) → y − P(s, a) with y = r + γ(1 − d)·[P(s′, a′) + min_k F̄^k(s′, a′)], where a is the executed
-    (post-select) assignment and a′ the argmax decision at s′: F is the future of the decisions the model deploys, so
-    its target carries no entropy bonus. With the commitment reward r − P(s, a) is what the step settles of earlier
-    decisions (a team's decay during travel), 0 on most steps.
-
-    Actor: the pre-assignment's policy gradient against the argmax as baseline (self-critical), −(Q(s, a_σ) −
-    Q(s, a_g))·log π(c_σ|s) − α·H(s) (+ β·KL(π ‖ π₀)), where c_σ is a sampled first round, a_σ its decision and a_g the
-    argmax decision. P enters exactly; the mean-field expectation of the paper's actor loss cannot carry it, since the
-    profit of a team is not a sum over its members (implementation detail 24).
-    """
-
-    def critic_loss(
-        self, obs: ObsView, next_obs: ObsView, data: TwoStageReplayBufferSamples, alpha: th.Tensor
-    ) -> PreAssignCriticLoss:
-        m = self.model
-        assert m.critic is not None and m.critic_target is not None
-        rewards, dones = data.rewards.squeeze(-1), data.dones.squeeze(-1)
-        gamma = m.gamma if data.discounts is None else data.discounts.squeeze(-1)  # γ^k of an n-step return
-        actions = data.actions.long()
-        profit = executed_profit(obs, actions)
-        # y − P(s, a) = r − P(s, a) + γ(1 − d)·[P(s′, a′) + min_k F̄^k(s′, a′)], a′ the argmax decision at s′
-        with th.no_grad():
-            nxt = decide_preassigned(m.policy, next_obs, ARGMAX)
-            next_q = th.stack(m.critic_target.decision_values(next_obs, nxt.candidates, nxt.env_action), 0).min(0).values
-            target_f = rewards - profit + (1 - dones) * gamma * next_q
-        # ½ Σ_k (F^k(s, a) − (y − P))²; the critics' Q(s, a) is P + F
-        contexts = m.critic.contexts(obs)
-        future = m.critic.mix(contexts, executed_assignment(actions, obs.reward.shape[1]))
-        loss = 0.5 * sum(F.mse_loss(f, target_f) for f in future)
-        return PreAssignCriticLoss(loss, target_f + profit, tuple(f + profit for f in future), contexts)  # type: ignore[arg-type]
-
-    def actor_loss(self, obs: ObsView, dist: MaskedCategorical, contexts: list[CriticContext], alpha: th.Tensor) -> th.Tensor:
-        m = self.model
-        assert m.critic is not None
-        with th.no_grad():
-            sampled = decide_preassigned(m.policy, obs, SAMPLED)
-            greedy = decide_preassigned(m.policy, obs, ARGMAX)
-            detached = [ctx.detach() for ctx in contexts]
-            q_sampled, q_greedy = (
-                th.stack(m.critic.decision_values(obs, d.candidates, d.env_action, detached), 0).min(0).values
-                for d in (sampled, greedy)
-            )
-        chosen = sampled.candidates.transpose(1, 2)  # (B, N, M) the sampled first round's one-hot candidate sets
-        log_prob = (dist.log_probs * chosen).sum((1, 2))  # Σ_i log π_i(c_i|s) over the entities it pre-assigned
-        loss = -(q_sampled - q_greedy) * log_prob - alpha * losses.state_entropy(dist, obs, m.entropy_bonus == "mean")
-        if m.prior_coef > 0 and m.policy.actor_prior is not None:
-            with th.no_grad():
-                prior_dist = m.policy.actor_prior(obs)
-            loss = loss + m.prior_coef * dist.kl(prior_dist).sum(1)
-        return loss.mean()
-
-
-#: ``TAMPolicy(mixer=...)`` -> the update of its pre-assign stage (the paper's for the others).
-PREASSIGN_UPDATES: dict[str, type[PreAssignUpdate]] = {"future": FuturePreAssignUpdate}
 
 
 class SelectUpdate:
