@@ -37,16 +37,26 @@ def logged_returns(logs: list[Path]) -> np.ndarray:
     return np.array([r for _, r in sorted(ends)])
 
 
+def _milp_gaps(run: TableRun) -> tuple[Path, dict[str, dict[str, float]]]:
+    """``milp_gaps.json`` beside the cells and what it holds (empty before the first MILP cell)."""
+    path = run.folder / "milp_gaps.json"
+    return path, (json.loads(path.read_text()) if path.exists() else {})
+
+
+def _milp_gap_key(run: TableRun, name: str, row: str, seed: int) -> str:
+    """The key of one cell's gap: its row, seed and configuration (:meth:`~.table.TableRun.cell_key`)."""
+    return f"{row}|{seed}|{run.cell_key(name, row)}"
+
+
 def record_milp_gap(run: TableRun, name: str, row: str, seed: int, agent: object) -> None:
     """File the per-step MILP's :meth:`~sb3_taskalloc.baselines.MILPAllocator.gap_summary` of one cell in
     ``milp_gaps.json`` beside the cells, under the cell's configuration (other agents: nothing)."""
     from sb3_taskalloc.baselines import MILPAllocator
 
     if isinstance(agent, MILPAllocator):
-        path = run.folder / "milp_gaps.json"
-        gaps = json.loads(path.read_text()) if path.exists() else {}
-        key = f"{row}|{seed}|{run.cell_key(name, row)}"
-        atomic_write_text(path, json.dumps({**gaps, key: agent.gap_summary()}, indent=1) + "\n")
+        path, gaps = _milp_gaps(run)
+        gaps[_milp_gap_key(run, name, row, seed)] = agent.gap_summary()
+        atomic_write_text(path, json.dumps(gaps, indent=1) + "\n")
 
 
 def milp_gap_line(run: TableRun) -> list[str]:
@@ -54,9 +64,8 @@ def milp_gap_line(run: TableRun) -> list[str]:
     filed (none: no line)."""
     from sb3_taskalloc.baselines import MILPAllocator
 
-    path = run.folder / "milp_gaps.json"
-    gaps = json.loads(path.read_text()) if path.exists() else {}
-    keys = [f"{row}|{seed}|{run.cell_key(name, row)}" for name, row, seed in run.done() if name == "MILP" and seed < run.seeds]
+    _, gaps = _milp_gaps(run)
+    keys = [_milp_gap_key(run, name, row, seed) for name, row, seed in run.done() if name == "MILP" and seed < run.seeds]
     g = MILPAllocator.pooled_gap_summary([gaps[k] for k in keys if k in gaps])
     if not g["solves"]:
         return []
