@@ -264,7 +264,7 @@ def test_team_search_takes_each_tasks_most_profitable_team():
     pointer's argmax team and K_s − 1 sampled ones: a team of its own candidates that covers it, never less profitable
     than the argmax's and more in some of these RBF tasks; reproducible, and sampled decisions do not search."""
     env = gym.make("TaskAlloc/RBF-v0")
-    plain, searching, again = (make_policy(env, "team_search", {"samples": k}) for k in (1, 16, 16))
+    plain, searching, again = (make_policy(env, "team_search", {"samples": k}) for k in (1, 32, 32))
     view = episode_view(env, plain)
     searching.load_state_dict(plain.state_dict())
     again.load_state_dict(plain.state_dict())
@@ -626,6 +626,43 @@ def test_pointer_scores_equal_their_definition(state_value):
     assert len(fast_grads) == len(ref_grads) == len(list(head.parameters()))
     for a, b in zip(fast_grads, ref_grads, strict=True):
         th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    # Three consecutive copies of each row share its entity embeddings: the scores of the embeddings repeated.
+    with th.no_grad():
+        d, copied = head.embed_entities(view), (task_state.repeat_interleave(3, 1), dyn.repeat_interleave(3, 1))
+        shared = head(d, *copied, task_of.repeat_interleave(3, 0))
+        th.testing.assert_close(shared, head(d.repeat_interleave(3, 0), *copied, task_of.repeat_interleave(3, 0)))
+        th.testing.assert_close(shared[:, ::3], fast)
+
+
+def test_a_decode_drops_finished_rows_alike(monkeypatch):
+    """``decode_round`` decodes on without the rows whose tasks are all done (``SelectState.take``/``put``) and scores
+    the copies of a round with their rows' entity embeddings shared: the same pick orders, costs and kept teams as the
+    fixed-length loop over every row, for the argmax and for samples from one seeded stream, on 6 copies of 6 RBF
+    states whose rows finish at different steps."""
+    from sb3_taskalloc.two_stage_sac.select_stage import decode_round
+
+    env = gym.make("TaskAlloc/RBF-v0")
+    th.manual_seed(0)
+    policy = make_policy(env)
+    one = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=1)))
+    rounds: list = []
+    with th.no_grad():
+        policy.decide(one, deterministic=True, rounds_out=rounds)
+        head, (_, task_of) = policy.selector.head, rounds[0]
+        view, copies = ObsView(*(x.repeat_interleave(6, 0) for x in one)), task_of.repeat_interleave(6, 0)
+        taken: list[int] = []
+        take = SelectState.take
+        monkeypatch.setattr(SelectState, "take", lambda st, rows: taken.append(len(rows)) or take(st, rows))
+        for deterministic in (True, False):
+            taken.clear()
+            fixed = decode_round(head, view, copies, deterministic, generator=th.Generator().manual_seed(0), fixed_picks=True)
+            assert not taken
+            for embedded in (None, head.embed_entities(one)):
+                st = decode_round(
+                    head, view, copies, deterministic, generator=th.Generator().manual_seed(0), embedded=embedded
+                )
+                assert th.equal(st.rank, fixed.rank) and th.equal(st.cost, fixed.cost) and th.equal(st.kept(), fixed.kept())
+            assert taken and min(taken) < len(copies) // 2  # rows were dropped, more than once
 
 
 def test_logit_scale_multiplies_the_pre_assign_logits():

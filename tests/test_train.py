@@ -395,8 +395,9 @@ def test_segmented_categorical_equals_masked_categorical_over_tasks():
 
 def test_segment_pick_equals_masked_pick_over_tasks():
     """The pointer's picks on (B, N) equal :func:`masked_pick` on the (B, M, N) layout it replaces, bit for bit: the argmax
-    with its first-index tie rule, and samples from the same seeded stream; a segment without an allowed entity gets
-    entity 0."""
+    with its first-index tie rule, and a sample is that argmax of the scores perturbed by one Gumbel draw per entity
+    from the seeded stream; a segment without an allowed entity gets entity 0; the samples follow each segment's
+    softmax."""
     th.manual_seed(0)
     B, N, M = 6, 11, 4
     seg = th.randint(0, M, (B, N))
@@ -410,7 +411,11 @@ def test_segment_pick_equals_masked_pick_over_tasks():
     for deterministic in (True, False):
         for seed in range(20):
             got = segment_pick(scores, allowed, seg, M, deterministic, th.Generator().manual_seed(seed))
-            want = masked_pick(scores.unsqueeze(1).masked_fill(~full, NEG), deterministic, th.Generator().manual_seed(seed))
+            noisy = scores
+            if not deterministic:
+                u = th.rand((B, N), generator=th.Generator().manual_seed(seed)).clamp_(1e-10, 1.0 - 1e-7)
+                noisy = scores - th.log(-th.log(u))
+            want = masked_pick(noisy.unsqueeze(1).masked_fill(~full, NEG), True)
             assert th.equal(got[has], want[has]) and (got[~has] == 0).all()
             assert full.gather(-1, got.unsqueeze(-1)).squeeze(-1)[has].all()  # a pick is its segment's allowed entity
         top = scores.unsqueeze(1).masked_fill(~full, NEG).max(-1, keepdim=True).values

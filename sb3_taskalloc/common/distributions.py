@@ -55,12 +55,12 @@ def segment_pick(
     n_seg: int,
     deterministic: bool,
     generator: th.Generator | None = None,
+    uniforms: th.Tensor | None = None,
 ) -> th.Tensor:
     """:func:`masked_pick` of every segment at once, computed on (B, N) instead of (B, M, N): the same picks as
     ``masked_pick(scores.unsqueeze(1).masked_fill(~mask, NEG), ...)`` where ``mask[b, j, i]`` is ``allowed[b, i]`` and
-    ``seg[b, i] == j``, for every segment with an allowed entity (a segment without one gets entity 0). The sample
-    draws the same (B, M, N) uniforms from ``generator`` and uses each entity's own segment's, so a seeded stream
-    gives the same picks too; only the Gumbel transform, the masking and the maximum shrink by M.
+    ``seg[b, i] == j``, for every segment with an allowed entity (a segment without one gets entity 0), and the
+    sample follows the same distribution: the softmax of each segment's allowed scores.
 
     :param scores: (B, N) unmasked scores
     :param allowed: (B, N) bool, entities that may be picked
@@ -68,12 +68,16 @@ def segment_pick(
     :param n_seg: number of segments M
     :param deterministic: the first maximum of each segment (else a Gumbel-max sample)
     :param generator: the random stream of the sample (None: torch's global one)
+    :param uniforms: (B, N) the sample's uniforms, drawn by the caller (None: drawn here from ``generator``)
     :return: (B, M) the entity picked in each segment
     """
     B, N = scores.shape
     if not deterministic:
-        u = th.rand((B, n_seg, N), generator=generator, dtype=scores.dtype, device=scores.device)
-        u = th.gather(u, 1, seg.unsqueeze(1)).squeeze(1).clamp_(1e-10, 1.0 - 1e-7)
+        # One uniform per entity: each entity takes part in one segment's draw, so the Gumbel-max of every segment
+        # reads independent noise, as with a (B, M, N) draw, at 1/M of its cost.
+        if uniforms is None:
+            uniforms = th.rand((B, N), generator=generator, dtype=scores.dtype, device=scores.device)
+        u = uniforms.clamp(1e-10, 1.0 - 1e-7)
         scores = scores - th.log(-th.log(u))
     scores = scores.masked_fill(~allowed, -th.inf)
     best = scores.new_full((B, n_seg), -th.inf).scatter_reduce_(1, seg, scores, "amax")

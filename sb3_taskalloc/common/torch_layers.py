@@ -397,7 +397,8 @@ class PointerHead(nn.Module):
         return self.entity(view.entity)
 
     def forward(self, d: th.Tensor, task_state: th.Tensor, dyn: th.Tensor, task_of: th.Tensor) -> th.Tensor:
-        """:param d: (B, N, H) entity embeddings; :param task_state: (..., B, M, S) task states (optional leading time
+        """:param d: (B, N, H) entity embeddings, or (B / S, N, H) those of S consecutive copies of each row (a search's
+            copies of one state share them); :param task_state: (..., B, M, S) task states (optional leading time
         dims); :param dyn: (..., B, N, SELECT_DYN) the select stage's dynamic features;
         :param task_of: (B, N) task whose candidate entity i is (−1: none)
         :return: (..., B, N) scores (arbitrary for entities with no task; the caller masks them)"""
@@ -407,9 +408,11 @@ class PointerHead(nn.Module):
         e = self.task(task_state)
         lead = e.shape[:-3]
         B, M, H = e.shape[-3:]
-        # d_i·e_j for every pair in one batched matmul over B (no broadcast copies), then each entity's own column.
-        flat = e.reshape(-1, B, M, H).permute(1, 3, 0, 2).reshape(B, H, -1)  # (B, H, T·M)
-        pairs = (d @ flat).view(B, d.shape[1], -1, M).permute(2, 0, 1, 3).reshape(*lead, B, d.shape[1], M)
+        (B0, N, _), S = d.shape, B // d.shape[0]
+        # d_i·e_j for every pair in one batched matmul over the rows of d (no broadcast copies; the copies of a row
+        # and the time steps widen its product), then each entity's own column.
+        flat = e.reshape(-1, B0, S, M, H).permute(1, 4, 0, 2, 3).reshape(B0, H, -1)  # (B0, H, T·S·M)
+        pairs = (d @ flat).view(B0, N, -1, S, M).permute(2, 0, 3, 1, 4).reshape(*lead, B, N, M)
         idx = task_of.clamp_min(0).unsqueeze(-1).expand(*lead, -1, -1, 1)
         scores = th.gather(pairs, -1, idx).squeeze(-1) / self.scale + linear
         if self.value is not None:

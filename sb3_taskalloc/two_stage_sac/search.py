@@ -41,13 +41,15 @@ def select_search(
     :param temperature: T of the sampled decodes (> 1: picks further from the argmax)
     :param generator: the random stream of the sampled decodes (None: torch's global one)
     """
-    base = decode_round(head, view, task_of, deterministic=True)
+    d = head.embed_entities(view)  # the copies share their state's entity embeddings
+    base = decode_round(head, view, task_of, deterministic=True, embedded=d)
     p0 = task_profit(base)
     if samples <= 1:
         return SelectSearchResult(base.rank, p0, p0)
     (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
     rep = ObsView(*(x.repeat_interleave(S, 0) for x in view))
-    st = decode_round(head, rep, task_of.repeat_interleave(S, 0), False, temperature=temperature, generator=generator)
+    tr = task_of.repeat_interleave(S, 0)
+    st = decode_round(head, rep, tr, False, temperature=temperature, generator=generator, embedded=d)
     profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first
     best = profit.argmax(1)  # (B, M), the first maximum
     ranks = th.cat([base.rank.unsqueeze(1), st.rank.view(B, S, M, N)], 1)

@@ -12,6 +12,7 @@ row in parallel) and the losses (:func:`teacher_forced`, every step of stored pi
 
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple
 
 import torch as th
@@ -21,6 +22,9 @@ from sb3_taskalloc.common.torch_layers import ObsView, PointerHead, symlog
 
 #: A task counts as covered (internally) when every remaining demand is at most this (the env's tolerance is larger).
 COVER_TOL = 1e-5
+#: :func:`decode_round` drops the rows with no active task once the rows still decoding are at most this share of those it
+#: decodes: a pick step's work is per row, and dropping rows costs a copy of the state.
+COMPACT_SHARE = 0.75
 
 
 class Decision(NamedTuple):
@@ -182,6 +186,7 @@ class SelectState:
         self.task_of = task_of
         self.slots = th.arange(M, device=task_of.device)
         self.seg = task_of.unsqueeze(1) == self.slots.view(1, M, 1)  # (B, M, N) candidates of task j
+        self.seg_of = task_of.clamp_min(0)  # (B, N) the segment of each entity in the pick (:func:`segment_pick`)
         self.avail = task_of >= 0  # (B, N) candidates not picked yet
         self.rem = view.demand.clone()
         self.cost = th.zeros(B, M, device=task_of.device)
@@ -227,6 +232,25 @@ class SelectState:
         self.active = self.active & ~done
         return reward, done
 
+    #: The per-row fields that a pick changes, and those it leaves as they are (:meth:`take`, :meth:`put`).
+    CHANGING = ("avail", "rem", "cost", "npick", "covered", "rank", "choosable", "active")
+    FIXED = ("task_of", "seg", "seg_of", "pc_own")
+
+    def take(self, rows: th.Tensor) -> SelectState:
+        """The state of the batch rows ``rows`` alone, to decode on without the others."""
+        part = copy.copy(self)
+        part.view = ObsView(*(x[rows] for x in self.view))
+        part.useful = (self.useful[0][rows], self.useful[1][rows])
+        for name in self.CHANGING + self.FIXED:
+            setattr(part, name, getattr(self, name)[rows])
+        return part
+
+    def put(self, rows: th.Tensor, part: SelectState) -> None:
+        """Write back ``part``, the :meth:`take` of ``rows`` advanced since, into those rows."""
+        for name in self.CHANGING:
+            getattr(self, name)[rows] = getattr(part, name)
+        self.useful[0][rows], self.useful[1][rows] = part.useful
+
     def kept(self) -> th.Tensor:
         """(B, M) tasks whose internal profit (reward if covered − Σ pair costs) is positive; others are abandoned."""
         return self.covered & (self.view.reward - self.cost > 0)
@@ -241,6 +265,7 @@ def decode_round(
     temperature: float = 1.0,
     generator: th.Generator | None = None,
     fixed_picks: bool = False,
+    embedded: th.Tensor | None = None,
 ) -> SelectState:
     """Decode the teams of every task of one round in parallel (one pick per task per step).
 
@@ -253,27 +278,45 @@ def decode_round(
         between: a loop of fixed length and shapes that ``torch.compile(fullgraph=True)`` traces without a graph break
         (with ``generator=None``; a generator object breaks the graph). The teams and pick orders are the same as the
         default loop's, which stops once no task is active: on the CPU that check costs nothing and saves the steps
+    :param embedded: the pointer's entity embeddings of ``view`` (``head.embed_entities(view)``) where the caller has
+        them already: (B, N, H), or (B / S, N, H) when the rows are S consecutive copies of each row of a round (a
+        search's copies), which the pointer then scores in wider products
     """
-    st = SelectState(view, task_of)
+    full = st = SelectState(view, task_of)
     B, M, N = st.seg.shape
-    seg = task_of.clamp_min(0)
-    d = None if head is None or uniform else head.embed_entities(view)
+    rows = th.arange(B, device=task_of.device)  # the rows of `full` that `st` decodes
+    d = None if head is None or uniform else embedded if embedded is not None else head.embed_entities(view)
+    embeddings, copies = d, 1 if d is None else B // d.shape[0]
     for t in range(N):
-        if not fixed_picks and not bool(st.active.any()):
-            break
+        if not fixed_picks:
+            live = st.active.any(1)
+            n_live = int(live.sum())
+            if n_live == 0:
+                break
+            if n_live <= COMPACT_SHARE * len(rows):
+                if st is not full:
+                    full.put(rows, st)
+                keep = live.nonzero().squeeze(1)
+                st, rows = st.take(keep), rows[keep]
+                d = None if embeddings is None else embeddings[rows // copies]
+        # One uniform per row of the whole batch, whatever the rows left, so the sample is the fixed loop's.
+        u = None if deterministic else th.rand((B, N), generator=generator, device=task_of.device)
+        u = u if u is None or st is full else u[rows]
         if d is None:
-            logits = th.zeros(B, N, device=task_of.device)
+            logits = th.zeros(len(rows), N, device=task_of.device)
         else:
             task_state, dyn = st.features()
-            logits = head(d, task_state, dyn, task_of)  # type: ignore[misc]
+            logits = head(d, task_state, dyn, st.task_of)  # type: ignore[misc]
             if not deterministic and temperature != 1.0:
                 logits = logits / temperature
-        picks = segment_pick(logits, st.allowed(), seg, M, deterministic, generator)  # (B, M)
+        picks = segment_pick(logits, st.allowed(), st.seg_of, M, deterministic, uniforms=u)  # (B, M)
         valid = st.active.clone()
         old = th.gather(st.rank, 2, picks.unsqueeze(-1)).squeeze(-1)
         st.rank.scatter_(2, picks.unsqueeze(-1), th.where(valid, t, old).unsqueeze(-1))
         st.advance(picks, valid)
-    return st
+    if st is not full:
+        full.put(rows, st)
+    return full
 
 
 def round_profit(head: PointerHead, view: ObsView, task_of: th.Tensor) -> th.Tensor:
