@@ -13,6 +13,22 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
 from sb3_taskalloc.two_stage_sac.select_stage import decode_round, round_profit, task_profit
 
+#: The observation fields that the select stage reads besides the entity features of its embeddings (:mod:`.select_stage`).
+SELECT_FIELDS = ("supply", "demand", "reward", "pair_cost", "task_mask")
+
+
+def select_copies(view: ObsView, copies: int) -> ObsView:
+    """``copies`` consecutive copies of each row of ``view`` for the select stage's decoding with the rows' entity
+    embeddings given: the fields it does not read (:data:`SELECT_FIELDS`) stay behind, empty, so the copies cost what
+    the decoding needs (the pair basis alone is M × 5 numbers per entity)."""
+    rows = view.reward.shape[0] * copies
+    return ObsView(
+        *(
+            x.repeat_interleave(copies, 0) if name in SELECT_FIELDS else x.new_empty((rows, *[0] * (x.dim() - 1)))
+            for name, x in zip(ObsView._fields, view, strict=True)
+        )
+    )
+
 
 class SelectSearchResult(NamedTuple):
     """Each task's best team of a select-stage search (:func:`select_search`)."""
@@ -47,7 +63,7 @@ def select_search(
     if samples <= 1:
         return SelectSearchResult(base.rank, p0, p0)
     (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
-    rep = ObsView(*(x.repeat_interleave(S, 0) for x in view))
+    rep = select_copies(view, S)
     tr = task_of.repeat_interleave(S, 0)
     st = decode_round(head, rep, tr, False, temperature=temperature, generator=generator, embedded=d)
     profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first

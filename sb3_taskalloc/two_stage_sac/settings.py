@@ -33,7 +33,8 @@ PAPER_KWARGS: dict[str, Any] = {
 #: The select stage's settings (``select_kwargs``) and their defaults: its entropy coefficient α_s (as ``ent_coef``),
 #: the weight β_s of its prior term (implementation detail 12), the rows of each minibatch it trains on (each holds up
 #: to M × team-size transitions, so a few rows suffice), and the team-search distillation term (detail 18): its weight
-#: λ_p (0: off), the decodes per task including the deterministic one, and their temperature.
+#: λ_p (0: off), the decodes per task including the deterministic one, their temperature, and the rows it searches (the
+#: first of the select stage's; None: all of them), since each costs ``search_samples`` decodes of every task.
 SELECT_DEFAULTS: dict[str, Any] = {
     "ent_coef": "auto",
     "prior_coef": 3.0,
@@ -41,6 +42,7 @@ SELECT_DEFAULTS: dict[str, Any] = {
     "search_coef": 0.0,
     "search_samples": 16,
     "search_temperature": 1.0,
+    "search_rows": None,
 }
 
 
@@ -50,6 +52,13 @@ def check_select_kwargs(select_kwargs: dict[str, Any] | None) -> dict[str, Any]:
     check_counts({f"select_kwargs[{k!r}]": settings[k] for k in ("batch_size", "search_samples")})
     check_finite({f"select_kwargs[{k!r}]": settings[k] for k in ("prior_coef", "search_coef")}, inclusive=True)
     check_finite({"select_kwargs['search_temperature']": settings["search_temperature"]})
+    if settings["search_rows"] is not None:
+        check_counts({"select_kwargs['search_rows']": settings["search_rows"]})
+        if settings["search_rows"] > settings["batch_size"]:
+            raise ValueError(
+                f"select_kwargs['search_rows'] ({settings['search_rows']}) must be at most the select stage's rows, "
+                f"select_kwargs['batch_size'] ({settings['batch_size']})"
+            )
     return settings
 
 
