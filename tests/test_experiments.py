@@ -6,6 +6,7 @@ import copy
 import csv
 import dataclasses
 import json
+import math
 import multiprocessing as mp
 import os
 import re
@@ -324,6 +325,20 @@ def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monke
     record = run.run_seed(0)
     assert [kw for _, kw in calls] == [{"iterations": 2, "imitation": "set", "seed": learn.dagger_seed(0), "episodes": 3}]
     assert len(record["dagger"]) == 2 and [p[0] for p in record["curve"][-2:]] == [9, 12]  # 3 one-step episodes each
+
+
+def test_learning_experiment_reports_no_critic_where_none_trained(tmp_path):
+    """With the pre-assign actor held (``train_preassign_actor=False``) its critics do not train: the seed's record
+    holds no critic figure (NaN), and the report has no critic column and says so among the targets."""
+    from sb3_taskalloc.experiments import learn
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}, "train_preassign_actor": False}
+    run = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                         out=tmp_path, select_dagger=0)  # fmt: skip
+    record = run.run_seed(0)
+    assert math.isnan(record["q_corr"]) and math.isnan(record["advantage_corr"]) and record["trained"]
+    text = Path(run.run(progress=False)).with_suffix(".md").read_text()
+    assert "- critic: not trained" in text and "corr(Q, G)" not in text
 
 
 def test_table_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):

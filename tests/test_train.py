@@ -22,7 +22,7 @@ from sb3_taskalloc.two_stage_sac import losses
 from sb3_taskalloc.two_stage_sac.policies import starts_at_rule
 from sb3_taskalloc.two_stage_sac.search import cover_search, select_search
 from sb3_taskalloc.two_stage_sac.select_stage import SelectState, round_profit, teacher_forced
-from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate
+from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate, optimizer_step, temperature
 
 
 @pytest.fixture(scope="module")
@@ -326,7 +326,11 @@ def _small_rbf_model(**kwargs: Any) -> TwoStageSAC:
 
 
 def test_frozen_preassign_actor_keeps_its_rule():
+    """With ``train_preassign_actor=False`` only the select stage learns: the pre-assign actor, its temperature and its
+    critics keep their values. Training those critics as well (the stage-1 update put back) would change neither the
+    decisions taken nor any network that decides: the select stage's networks come out bit for bit the same."""
     m = _small_rbf_model(train_preassign_actor=False)
+    assert [type(u).__name__ for u in m.updates] == ["SelectUpdate"]
     m.learn(12)
     before = {k: v.clone() for k, v in m.policy.state_dict().items()}
     alpha = float(m.log_ent_coef.detach())  # type: ignore[union-attr]
@@ -336,9 +340,26 @@ def test_frozen_preassign_actor_keeps_its_rule():
     def changed(prefix: str) -> bool:
         return any(not th.equal(before[k], after[k]) for k in after if k.startswith(prefix))
 
-    assert changed("critic.") and changed("select_critic.") and changed("selector.")
-    assert not changed("actor.")
+    assert changed("select_critic.") and changed("selector.")
+    assert not changed("actor.") and not changed("critic.")
     assert float(m.log_ent_coef.detach()) == alpha  # type: ignore[union-attr]
+
+    class CriticsOnly(PreAssignUpdate):  # the stage-1 critics' update alone, their target networks following
+        def __call__(self, obs: ObsView, data: Any, logs: Any) -> None:
+            m = self.model
+            alpha = temperature(m.log_ent_coef, m.ent_coef_tensor)
+            optimizer_step(m.critic.optimizer, self.critic_loss(obs, m.policy.parse(data.next_observations), data, alpha).loss)
+
+    with_critics = _small_rbf_model(train_preassign_actor=False)  # each model seeds torch's global stream as it is made
+    with_critics.updates.insert(0, CriticsOnly(with_critics))
+    with_critics.learn(40)
+    held = _small_rbf_model(train_preassign_actor=False).learn(40)
+    trained = with_critics.policy.state_dict()
+    assert any(not th.equal(trained[k], v) for k, v in held.policy.state_dict().items() if k.startswith("critic."))
+    for k, v in held.policy.state_dict().items():
+        if not k.startswith("critic"):
+            assert th.equal(trained[k], v), k
+    np.testing.assert_array_equal(with_critics.replay_buffer.actions, held.replay_buffer.actions)
     with pytest.raises(ValueError, match="train_preassign_actor"):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", train_preassign_actor="no")
 

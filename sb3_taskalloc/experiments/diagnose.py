@@ -59,7 +59,8 @@ from sb3_taskalloc.experiments.calibration import branch_calibration, critic_fig
 
 @dataclass
 class Diagnosis:
-    """The figures of :func:`diagnose` (NaN where a figure does not apply, e.g. without pre-assignment)."""
+    """The figures of :func:`diagnose` (NaN where a figure does not apply: the critic's without pre-assignment or with
+    its actor held at its rule, whose critics do not train)."""
 
     env: str
     episodes: int
@@ -216,6 +217,9 @@ def diagnose(
     :param branch_stride: every ``branch_stride``-th state of an episode is branched
     """
     policy, gamma = model.policy, float(model.gamma)
+    # The stage-1 critics train only with pre-assignment and its actor learning (``train_preassign_actor``).
+    critic = policy.actor is not None and policy.critic is not None and getattr(model, "train_preassign_actor", True)
+    branches = branches if critic else 0
     alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())
     env = gym.make(env_id)
     long_env, limit = unlimited_env(env_id, gamma)
@@ -234,7 +238,7 @@ def diagnose(
     timing = getattr(model, "reward_timing", "completion")
     learned = "commitment" if timing == "commitment" else "rewards"  # the reward the stage-1 critic learns
     rewards = np.concatenate([e[learned][within] for e in sampled])
-    if policy.actor is not None and policy.critic is not None:
+    if critic:
         figures.update(critic_figures(model, sampled, within, learned, alpha))
     stages = {k: float(np.mean(v)) for k, v in stage_returns(model, env_id, [seed + k for k in range(episodes)]).items()}
     decisions = [d for e in deterministic for d in zip(e["obs"][:-1], e["candidates"], e["kept"], strict=True)]

@@ -4,6 +4,7 @@ targets, as Markdown, JSON and the curves' PNG."""
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -42,6 +43,12 @@ def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHE
     return all(k in r for r in records for k in keys)
 
 
+def critic_trained(records: list[dict[str, Any]]) -> bool:
+    """Whether the records hold figures of a trained stage-1 critic (none without pre-assignment, or with its actor
+    held at its rule: NaN)."""
+    return any(math.isfinite(r.get("q_corr", math.nan)) for r in records)
+
+
 def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -> str:
     """:func:`seed_mean` formatted, with the number of seeds it is over when some seeds lack the figure ("—" when none
     has it)."""
@@ -78,6 +85,7 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
     headers = [names.get(c, c) for c in shown]
     critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
     critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
+    critic = critic if critic_trained(records) else []
     critic_headers = [CRITIC_COLUMNS[c] for c in critic]
     lines = [
         f"# {run.env_id}: TwoStageSAC trained {run.steps:,} steps, {len(records)} seeds"
@@ -141,21 +149,16 @@ def milp_gap(run: LearnRun, records: list[dict[str, Any]]) -> str:
             f"solves short of proven optimality, mean gap {g['mean_gap']:.4f}, largest {g['max_gap']:.4f}")  # fmt: skip
 
 
-def targets(run: LearnRun, means: dict[str, list[float]], records: list[dict[str, Any]]) -> list[str]:
-    """The learning targets, each with its measured value."""
-    trained, init, greedy, milp = (np.array(means[c]) for c in ("trained", "untrained", "Greedy", "MILP"))
-    n = len(trained)
-    ratio = trained.mean() / init.mean() if init.mean() > 0 else float("nan")
+def critic_lines(records: list[dict[str, Any]]) -> list[str]:
+    """The stage-1 critic's figures against their targets, or that it did not train."""
+    if not critic_trained(records):
+        return ["- critic: not trained (no pre-assignment, or its actor held at its rule: `train_preassign_actor=False`)"]
+    n = len(records)
     corr = np.array([r["q_corr"] for r in records])
     scale = np.array([r["q_scale"] for r in records])
     timings = " / ".join(sorted({r.get("critic_reward", "completion") for r in records}))
-    milp_target = " (target ≥ 0.99)" if run.env == "EPT" else " (goal ≥ 1)"
     paired = {c: seed_mean(records, c) for c in CRITIC_ADVANTAGE} if has_branched(records, CRITIC_ADVANTAGE) else {}
-    lines = [
-        f"- trained / untrained (means): {ratio:.3f} (target ≥ 1.10)",
-        f"- trained > untrained: {int((trained > init).sum())} of {n} seeds (target ≥ 4 of 5)",
-        f"- trained > Greedy: {int((trained > greedy).sum())} of {n} seeds (target all)",
-        f"- trained / per-step MILP (means): {trained.mean() / milp.mean():.3f}{milp_target}{milp_gap(run, records)}",
+    return [
         f"- critic: corr(Q, G) {corr.mean():.2f} (target ≥ 0.7), scale Q/G {scale.mean():.2f} (target 0.7–1.3); G is the "
         f"discounted return of the reward the critic learns (credited at {timings})",
         *(
@@ -184,6 +187,21 @@ def targets(run: LearnRun, means: dict[str, list[float]], records: list[dict[str
             if paired
             else []
         ),
+    ]
+
+
+def targets(run: LearnRun, means: dict[str, list[float]], records: list[dict[str, Any]]) -> list[str]:
+    """The learning targets, each with its measured value."""
+    trained, init, greedy, milp = (np.array(means[c]) for c in ("trained", "untrained", "Greedy", "MILP"))
+    n = len(trained)
+    ratio = trained.mean() / init.mean() if init.mean() > 0 else float("nan")
+    milp_target = " (target ≥ 0.99)" if run.env == "EPT" else " (goal ≥ 1)"
+    lines = [
+        f"- trained / untrained (means): {ratio:.3f} (target ≥ 1.10)",
+        f"- trained > untrained: {int((trained > init).sum())} of {n} seeds (target ≥ 4 of 5)",
+        f"- trained > Greedy: {int((trained > greedy).sum())} of {n} seeds (target all)",
+        f"- trained / per-step MILP (means): {trained.mean() / milp.mean():.3f}{milp_target}{milp_gap(run, records)}",
+        *critic_lines(records),
         f"- std over seeds of the trained return: {trained.std():.1f} (a smaller difference is not a result)",
     ]
     if all("curve_seconds" in r for r in records):  # what a training without the experiment's curve takes

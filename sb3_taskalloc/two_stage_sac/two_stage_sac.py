@@ -64,8 +64,9 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     :param reward_timing: the stage-1 reward: ``"completion"`` (the env's, the paper's) or ``"commitment"`` (detail 2)
     :param entropy_bonus: the stage-1 entropy term: ``"sum"`` over the free entities (the paper's) or their ``"mean"``
     :param warmup_exploration: the warm-up's decisions: ``"uniform"`` (SB3's random warm-up) or ``"policy"`` (detail 8)
-    :param train_preassign_actor: whether the pre-assign actor and its temperature learn; ``False`` holds them at their
-        initial rule while the critics and the select stage learn (implementation detail 23)
+    :param train_preassign_actor: whether stage 1 learns: the pre-assign actor, its temperature and the AMIX critics
+        that train it. ``False`` holds the actor at its initial rule while the select stage learns, and its critics,
+        which nothing else reads, do not train (implementation detail 23)
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ its initial rule (detail 12)
     :param select_kwargs: the select stage's settings over :data:`~sb3_taskalloc.two_stage_sac.updates.SELECT_DEFAULTS`
     :param target_update_interval: target network update interval (gradient steps)
@@ -199,10 +200,11 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         self.log_select_ent_coef, self.select_ent_coef_optimizer, self.select_ent_coef_tensor = stage.entropy_coefficient(
             self.select_kwargs["ent_coef"], "select_kwargs['ent_coef']", self.device, lr
         )
-        # One update per trained stage: none for the pre-assignment of a policy without it ("W/o Pre").
+        # One update per trained stage: none for the pre-assignment of a policy without it ("W/o Pre"), or held at its
+        # rule, where training its critics would change no decision (detail 23).
         self.updates: list[stage.PreAssignUpdate | stage.SelectUpdate] = [stage.SelectUpdate(self)]
-        if self.actor is not None:
-            self.updates.insert(0, stage.PreAssignUpdate(self, learn_actor=self.train_preassign_actor))
+        if self.actor is not None and self.train_preassign_actor:
+            self.updates.insert(0, stage.PreAssignUpdate(self))
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor

@@ -1,7 +1,7 @@
 """One gradient step of each stage of :class:`~sb3_taskalloc.TwoStageSAC`, in SAC's order: target → critic → actor →
 temperature (the target networks follow in ``train``). The algorithm holds one update per stage it trains: none for
-the pre-assignment of a policy without it ("W/o Pre"), and one that trains only the critics where the pre-assign actor
-is held at its rule (``train_preassign_actor=False``).
+the pre-assignment of a policy without it ("W/o Pre") or where the pre-assign actor is held at its rule
+(``train_preassign_actor=False``).
 
 Equations and numbers refer to the paper and to the implementation details of :mod:`sb3_taskalloc.two_stage_sac`.
 """
@@ -95,12 +95,10 @@ class PreAssignUpdate:
     and its temperature α.
 
     :param model: the algorithm, whose networks and settings are read at each step
-    :param learn_actor: whether the actor and α learn (False: only the critics, implementation detail 23)
     """
 
-    def __init__(self, model: TwoStageSAC, learn_actor: bool = True) -> None:
+    def __init__(self, model: TwoStageSAC) -> None:
         self.model = model
-        self.learn_actor = learn_actor
 
     def critic_loss(
         self, obs: ObsView, next_obs: ObsView, data: TwoStageReplayBufferSamples, alpha: th.Tensor
@@ -131,9 +129,6 @@ class PreAssignUpdate:
         # Target and critic.
         critic = self.critic_loss(obs, m.policy.parse(data.next_observations), data, alpha)
         logs["critic_loss"].append(critic.loss.item())
-        if not self.learn_actor:
-            optimizer_step(m.critic.optimizer, critic.loss)
-            return
         # Actor: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)) on the critic values above (detail 3), + β·KL(π ‖ π₀)
         # (detail 12). The parameters are disjoint, so one backward pass gives each network its own gradient.
         dist = m.actor(obs)
