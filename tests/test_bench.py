@@ -21,6 +21,7 @@ from sb3_taskalloc.experiments import bench
         ("envs", {"env", "steps_per_s", "steps_per_s_gym_make", "deepcopy_ms", "entities"}),
         ("policy", {"device", "entities", "tasks", "predict_ms"}),
         ("train", {"device", "env", "config", "env_steps_per_s", "gradient_step_ms", "decision_ms", "replay_GB_for_100k"}),
+        ("zoo", {"device", "env", "config", "env_steps_per_s", "gradient_step_ms", "decision_ms", "overrides"}),
         ("learn", {"device", "seed", "untrained", "target_return", "reached", "last_return", "training_s", "dagger_s"}),
         ("labels", {"labeller", "rounds", "tasks", "ms_per_round", "seconds"}),
     ],
@@ -58,9 +59,16 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
         for row in rows:
             (block,) = row["env_steps_per_s_blocks"]
             assert abs(block - row["env_steps_per_s"]) <= 0.005
-            # AMIX's share of a gradient step, timed alone, and the rate it and the decision would allow
-            assert 0 < row["amix_ms_per_gradient_step"] < row["gradient_step_ms"]
-            assert row["env_steps_per_s_bound"] == pytest.approx(1e3 / (row["decision_ms"] + row["amix_ms_per_gradient_step"]))
+        # AMIX's share of a gradient step, timed alone, and the rate it and the decision would allow; the zoo block
+        # holds the pre-assign actor, whose critics do not train
+        assert 0 < rows[0]["amix_ms_per_gradient_step"] < rows[0]["gradient_step_ms"]
+        assert rows[0]["env_steps_per_s_bound"] == pytest.approx(
+            1e3 / (rows[0]["decision_ms"] + rows[0]["amix_ms_per_gradient_step"])
+        )
+        assert rows[1]["amix_ms_per_gradient_step"] is None and rows[1]["env_steps_per_s_bound"] is None
+    if which == "zoo":  # each env's recommended configuration, as users train it
+        assert [row["env"].split(",")[0] for row in rows] == ["TaskAlloc/RBF-v0", "TaskAlloc/MT-v0"]
+        assert all(row["config"] == "zoo block" and row["overrides"] == {} for row in rows)
     if which == "learn":  # --quick: 200 env steps, evaluated after 100 and 200 unless the target came first
         # one row per device: the CPU, and CUDA where torch sees a GPU (--device auto)
         assert [row["device"] for row in rows] == ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m sb3_taskalloc.bench {envs,policy,train,baselines,learn,labels,all} [--out DIR]``.
+"""Benchmarks: ``python -m sb3_taskalloc.bench {envs,policy,train,zoo,baselines,learn,labels,all} [--out DIR]``.
 
 Each benchmark prints a table and writes ``<out>/bench_<name>.json`` with the figures, the machine and the command.
 Figures are measured with one thread (``OMP_NUM_THREADS=1``, ``torch.set_num_threads(1)``) unless stated. One module per
@@ -21,7 +21,7 @@ from typing import Any
 from sb3_taskalloc.experiments.bench.common import BenchFn, machine
 from sb3_taskalloc.experiments.bench.envs import bench_baselines, bench_envs
 from sb3_taskalloc.experiments.bench.policy import SEARCH, TEAM_SEARCH, bench_labels, bench_policy
-from sb3_taskalloc.experiments.bench.training import LEARN_TARGET, bench_learn, bench_train
+from sb3_taskalloc.experiments.bench.training import LEARN_TARGET, bench_learn, bench_train, bench_zoo
 
 __all__ = ["LEARN_TARGET", "SEARCH", "TEAM_SEARCH", "main"]
 
@@ -30,6 +30,7 @@ BENCHES: dict[str, BenchFn] = {
     "envs": bench_envs,
     "policy": bench_policy,
     "train": bench_train,
+    "zoo": bench_zoo,
     "baselines": bench_baselines,
     "learn": bench_learn,
     "labels": bench_labels,
@@ -82,7 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--learn-steps", type=int, default=48_000, help="learn benchmark: env steps at most per seed")
     parser.add_argument("--eval-every", type=int, default=4_000, help="learn benchmark: env steps between evaluations")
     parser.add_argument(
-        "--algo-kwargs", type=yaml_mapping, default={}, help="learn benchmark: TwoStageSAC keywords over the zoo config"
+        "--algo-kwargs",
+        type=yaml_mapping,
+        default={},
+        help="learn and zoo benchmarks: TwoStageSAC keywords over the zoo config",
     )
     parser.add_argument(
         "--device",

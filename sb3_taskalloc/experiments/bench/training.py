@@ -50,7 +50,8 @@ def measure_training(
 
     grad_ms = median_ms(gradient_step, reps, warmup=1)  # the warm-up step also waits for learn()'s queued work
     decision_ms = median_ms(decision, reps, warmup=1)
-    amix_ms = _amix_ms(model, device, reps)
+    # AMIX trains only where the pre-assign actor learns (a held actor's critics do not train: detail 23).
+    amix_ms = _amix_ms(model, device, reps) if model.train_preassign_actor else None
     kernel_ms = launches = None
     if device == "cuda":  # how much of the gradient step the GPU computes, apart from the host's dispatch
         from torch.profiler import ProfilerActivity, profile
@@ -74,7 +75,7 @@ def measure_training(
         "decision_ms": decision_ms,
         "amix_ms_per_gradient_step": amix_ms,
         # What the decision and AMIX's attention alone would allow, with everything else in a step free.
-        "env_steps_per_s_bound": 1e3 / (decision_ms + amix_ms),
+        "env_steps_per_s_bound": 1e3 / (decision_ms + amix_ms) if amix_ms is not None else None,
         "replay_GB_for_100k": model.replay_buffer.nbytes_per_transition() * 100_000 / 1e9,
         "target_steps_per_s": target,
     }
@@ -116,19 +117,35 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
-def zoo_block_row(env_id: str, device: str, steps: int, blocks: int, dagger: bool) -> dict[str, Any]:
+def bench_zoo(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """What users train: each env's recommended configuration (:func:`zoo_block_row`, ``--algo-kwargs`` over the
+    block) on RBF and MT, as the train benchmark's zoo-block row times it."""
+    steps, blocks = (20, 1) if args.quick else (100, 3)
+    envs = ("TaskAlloc/RBF-v0", "TaskAlloc/MT-v0")
+    return [
+        zoo_block_row(env_id, device, steps, blocks, dagger=not args.quick, overrides=args.algo_kwargs)
+        for device in bench_devices(args)
+        for env_id in envs
+    ]
+
+
+def zoo_block_row(
+    env_id: str, device: str, steps: int, blocks: int, dagger: bool, overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """The env's recommended configuration as users train it (:meth:`TwoStageSAC.from_zoo`: its zoo block, ``n_envs``
-    included) timed like the defaults, with a 64-step warm-up; with ``dagger``, one iteration of the block's DAgger
-    phase timed apart and the block's whole schedule (its budget, then its DAgger iterations) extrapolated."""
+    included, ``overrides`` over it) timed like the defaults, with a 64-step warm-up; with ``dagger``, one iteration of
+    the block's DAgger phase timed apart and the block's whole schedule (its budget, then its DAgger iterations)
+    extrapolated."""
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.zoo_config import zoo_dagger
 
-    model = TwoStageSAC.from_zoo(env_id, seed=0, learning_starts=64, device=device)
+    model = TwoStageSAC.from_zoo(env_id, seed=0, **{"learning_starts": 64, **(overrides or {}), "device": device})
     model.zoo_callbacks = ()  # the DAgger phase is timed apart
     n_envs = model.n_envs
     row = measure_training(model, device, max(steps, 8 * n_envs), blocks, f"{env_id}, zoo block (n_envs={n_envs})", 60)
     schedule = zoo_dagger(env_id)
     row.update(config="zoo block", dagger_iterations=schedule.get("iterations", 0), dagger_s_per_iteration=None)
+    row.update(overrides=overrides or {})
     if dagger and schedule:
         t0 = time.perf_counter()
         model.distill_select(env_id, **{**schedule, "iterations": 1}, seed=0)
