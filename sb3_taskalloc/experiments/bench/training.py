@@ -136,6 +136,7 @@ def zoo_block_row(
     included, ``overrides`` over it) timed like the defaults, with a 64-step warm-up; with ``dagger``, one iteration of
     the block's DAgger phase timed apart and the block's whole schedule (its budget, then its DAgger iterations)
     extrapolated."""
+    import envs  # noqa: F401  (registers the TaskAlloc ids)
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.zoo_config import zoo_dagger
 
