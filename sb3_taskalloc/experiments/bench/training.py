@@ -121,11 +121,11 @@ def bench_zoo(args: argparse.Namespace) -> list[dict[str, Any]]:
     """What users train: each env's recommended configuration (:func:`zoo_block_row`, ``--algo-kwargs`` over the
     block) on RBF and MT, as the train benchmark's zoo-block row times it."""
     steps, blocks = (20, 1) if args.quick else (100, 3)
-    envs = ("TaskAlloc/RBF-v0", "TaskAlloc/MT-v0")
+    env_ids = ("TaskAlloc/RBF-v0", "TaskAlloc/MT-v0")  # not `envs`: zoo_block_row imports the package of that name
     return [
         zoo_block_row(env_id, device, steps, blocks, dagger=not args.quick, overrides=args.algo_kwargs)
         for device in bench_devices(args)
-        for env_id in envs
+        for env_id in env_ids
     ]
 
 
