@@ -728,3 +728,18 @@ def test_a_fixed_length_decode_picks_alike_and_traces_whole(env_id):
         if env_id == "TaskAlloc/MT-v0":
             explained = torch._dynamo.explain(decode)(view, task_of)
             assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons
+
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_decisions_are_the_cpus():
+    """A deterministic decision of the zoo's RBF policy on CUDA is the CPU's, for a batch of states."""
+    from sb3_taskalloc import TwoStageSAC
+
+    policy = TwoStageSAC.from_zoo("TaskAlloc/RBF-v0", seed=0, n_envs=1, device="cpu").policy
+    obs = batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=2))
+    with th.no_grad():
+        on_cpu = policy.decide(policy.parse(policy.obs_to_tensor(obs)[0]), deterministic=True).env_action
+        policy.to("cuda")
+        on_cuda = policy.decide(policy.parse(policy.obs_to_tensor(obs)[0]), deterministic=True).env_action
+    assert on_cuda.is_cuda and th.equal(on_cuda.cpu(), on_cpu)
