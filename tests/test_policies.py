@@ -730,7 +730,6 @@ def test_a_fixed_length_decode_picks_alike_and_traces_whole(env_id):
             assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons
 
 
-
 @pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_decisions_are_the_cpus():
     """A deterministic decision of the zoo's RBF policy on CUDA is the CPU's, for a batch of states."""

@@ -95,8 +95,13 @@ def preassign_actor_loss(
     return loss.mean()
 
 
-def ent_coef_loss(log_alpha: th.Tensor, entropy: th.Tensor, target: th.Tensor) -> th.Tensor:
-    """log α·(H − H*): α grows while the entropy is below its target (SB3's SAC, per-entity or per-pick entropies)."""
+def ent_coef_loss(log_alpha: th.Tensor, entropy: th.Tensor, target: th.Tensor, weight: th.Tensor | None = None) -> th.Tensor:
+    """log α·(H − H*): α grows while the entropy is below its target (SB3's SAC, per-entity or per-pick entropies).
+
+    :param weight: each entropy's weight in the mean (summing to 1; None: equal weights)
+    """
+    if weight is not None:
+        return (log_alpha * ((entropy - target).detach() * weight)).sum()
     return (log_alpha * (entropy - target).detach()).mean()
 
 
@@ -104,12 +109,13 @@ def ent_coef_loss(log_alpha: th.Tensor, entropy: th.Tensor, target: th.Tensor) -
 
 
 class SelectLosses(NamedTuple):
-    n: int  # transitions
+    n: int | th.Tensor  # transitions (a tensor where the steps are padded: counting them would wait for the device)
     critic_loss: th.Tensor
     actor_loss: th.Tensor
-    target: th.Tensor  # (n,) TD targets
-    entropy: th.Tensor  # (n,) entropy of each pick's distribution
-    target_entropy: th.Tensor  # (n,) ratio × log(#choices)
+    target: th.Tensor  # (n,) TD targets; padded: (T, B, M), 0 where no pick happened
+    entropy: th.Tensor  # (n,) entropy of each pick's distribution; padded: (T, B, M)
+    target_entropy: th.Tensor  # (n,) ratio × log(#choices); padded: (T, B, M)
+    weight: th.Tensor | None = None  # padded: (T, B, M) each transition's weight in the means, 1 / n where a pick happened
 
 
 def select_losses(
@@ -124,6 +130,7 @@ def select_losses(
     target_entropy_ratio: float,
     prior: Selector | None = None,
     prior_coef: float = 0.0,
+    steps: int | None = None,
 ) -> SelectLosses | None:
     """Discrete-SAC losses of the select stage on the stored pick orders (implementation detail 5):
     Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})] (γ = 1 within a
@@ -133,7 +140,10 @@ def select_losses(
 
     :param candidates: (B, M, N) stored candidate sets; :param pick_rank: (B, M, N) stored pick steps
     :param preassign: the decisions came from pre-assignment (one round) or a shared pool (one round per task)
-    :return: the losses, or None when the batch holds no pick
+    :param steps: pad every round to this many pick steps (N always suffices) and weigh the transitions instead of
+        selecting them: the same losses up to rounding, from tensors of fixed shape with no host read, so that the
+        losses trace as one graph (``torch.compile(fullgraph=True)``); None: as many steps as the batch's longest team
+    :return: the losses, or None when ``steps`` is None and the batch holds no pick
     """
     rounds = stored_rounds(candidates, preassign)
     if len(rounds) > 1:  # W/o Pre: the rounds are independent given their candidate sets, so stack them as rows
@@ -141,7 +151,7 @@ def select_losses(
         view = ObsView(*(x.repeat(n, *([1] * (x.dim() - 1))) for x in view))
         pick_rank = pick_rank.repeat(n, 1, 1)
     head = selector.head
-    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank)
+    tf = teacher_forced(view, th.cat(rounds, 0), pick_rank, steps)
     if tf is None:
         return None
     M = pick_rank.shape[1]
@@ -161,17 +171,32 @@ def select_losses(
             prior_dist = SegmentedCategorical(p_logits, tf.choices, tf.seg, M)
         actor = actor + prior_coef * dist.kl(prior_dist)
     valid = tf.valid
-    q_sa = th.stack([segment_sum(tf.picked * q, tf.seg, M) for q in qs], dim=-1)[valid]  # (n, n_critics)
-    target = (tf.reward[valid] + (1 - tf.done[valid].float()) * v_next[valid]).detach()
-    critic_loss = 0.5 * sum(F.mse_loss(q_sa[:, k], target) for k in range(q_sa.shape[-1]))
+    q_sa = th.stack([segment_sum(tf.picked * q, tf.seg, M) for q in qs], dim=-1)  # (T, B, M, n_critics)
+    target = (tf.reward + (1 - tf.done.float()) * v_next).detach()
     n_choices = segment_sum(tf.choices.float(), tf.seg, M)
+    target_entropy = target_entropy_ratio * th.log(n_choices.clamp_min(1))
+    if steps is not None:  # the same means, each transition weighted (1 / n where a pick happened, else 0)
+        n_valid = valid.sum()
+        weight = valid.float() / n_valid.clamp_min(1)
+        critic_loss = 0.5 * sum((((q_sa[..., k] - target) ** 2) * weight).sum() for k in range(q_sa.shape[-1]))
+        return SelectLosses(
+            n_valid,
+            critic_loss,  # type: ignore[arg-type]
+            (actor * weight).sum(),
+            target * valid,
+            dist.entropy(),
+            target_entropy,
+            weight,  # type: ignore[arg-type]
+        )
+    q_sa, target = q_sa[valid], target[valid]  # (n, n_critics), (n,)
+    critic_loss = 0.5 * sum(F.mse_loss(q_sa[:, k], target) for k in range(q_sa.shape[-1]))
     return SelectLosses(
         n=int(target.numel()),
         critic_loss=critic_loss,  # type: ignore[arg-type]
         actor_loss=actor[valid].mean(),
         target=target,
         entropy=dist.entropy()[valid],
-        target_entropy=target_entropy_ratio * th.log(n_choices.clamp_min(1))[valid],
+        target_entropy=target_entropy[valid],
     )
 
 
@@ -182,7 +207,7 @@ class SelectSearchLoss(NamedTuple):
 
 
 def select_search_loss(
-    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float
+    selector: Selector, view: ObsView, candidates: th.Tensor, samples: int, temperature: float, steps: int | None = None
 ) -> SelectSearchLoss:
     """Distillation of a select-stage search (implementation detail 18): per task of the stored first round, the best
     of its deterministic team and ``samples`` − 1 sampled teams by the task's profit (:func:`.select_search`); where it
@@ -191,13 +216,22 @@ def select_search_loss(
     :param candidates: (B, M, N) stored candidate sets of pre-assigned decisions
     :param samples: K, decodes per task including the deterministic one (1: the term is 0)
     :param temperature: T of the sampled decodes
+    :param steps: decode and teacher-force with a fixed number of pick steps (N) and weigh the tasks instead of
+        selecting them, as :func:`select_losses` does with it: one graph when traced; None: the stopping decode
     """
     (task_of,) = stored_rounds(candidates, preassign=True)
     head = selector.head
     with th.no_grad():
-        found = select_search(head, view, task_of, samples, temperature)
+        found = select_search(head, view, task_of, samples, temperature, fixed_picks=steps is not None)
         improved = found.profit > found.base
         has = candidates.any(-1) & view.task_mask
+    if steps is not None:  # the same means over weighted tasks, with no host read
+        n_has, n_improved = has.sum().clamp_min(1), improved.sum().clamp_min(1)
+        log_p = team_log_prob(head, view, task_of, found.rank, steps)
+        assert log_p is not None  # a fixed number of steps is always laid out
+        gain, share = ((found.profit - found.base) * has).sum() / n_has, (improved & has).sum() / n_has
+        return SelectSearchLoss(-(log_p * improved).sum() / n_improved, share, gain)
+    with th.no_grad():
         gain = (found.profit - found.base)[has].mean() if bool(has.any()) else found.profit.new_zeros(())
         share = improved[has].float().mean() if bool(has.any()) else found.profit.new_zeros(())
     log_p = team_log_prob(head, view, task_of, found.rank) if bool(improved.any()) else None
@@ -207,7 +241,7 @@ def select_search_loss(
 
 
 def pick_log_probs(
-    head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor
+    head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, steps: int | None = None
 ) -> tuple[TeacherForcedRound, th.Tensor] | None:
     """The teacher-forced states of a stored decoding round (:func:`.teacher_forced`) and the pointer's
     log-probabilities (T, B, N) of every choice at each of them, or None when no task picks anything.
@@ -215,18 +249,21 @@ def pick_log_probs(
     :param task_of: (B, N) task each entity is a candidate of (−1: none)
     :param pick_rank: (B, M, N) step at which task j picks entity i (−1: not picked); every pick must be a valid choice
         of its step, as a decode's are
+    :param steps: the steps to lay out (:func:`.teacher_forced`)
     """
-    tf = teacher_forced(view, task_of, pick_rank)
+    tf = teacher_forced(view, task_of, pick_rank, steps)
     if tf is None:
         return None
     logits = head(head.embed_entities(view), tf.task_state, tf.dyn, tf.task_of)
     return tf, SegmentedCategorical(logits, tf.choices, tf.seg, pick_rank.shape[1]).log_probs
 
 
-def team_log_prob(head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> th.Tensor | None:
+def team_log_prob(
+    head: PointerHead, view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, steps: int | None = None
+) -> th.Tensor | None:
     """(B, M) Σ_t log π(a_t|s_t) of each task's stored pick sequence under the pointer, teacher-forced
-    (:func:`pick_log_probs`; 0 for a task that picks nothing), or None when no task picks anything."""
-    found = pick_log_probs(head, view, task_of, pick_rank)
+    (:func:`pick_log_probs`, ``steps`` as there; 0 for a task that picks nothing), or None when no task picks anything."""
+    found = pick_log_probs(head, view, task_of, pick_rank, steps)
     if found is None:
         return None
     tf, log_probs = found

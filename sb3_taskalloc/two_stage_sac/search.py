@@ -45,6 +45,7 @@ def select_search(
     samples: int,
     temperature: float,
     generator: th.Generator | None = None,
+    fixed_picks: bool = False,
 ) -> SelectSearchResult:
     """Per task, the best of the deterministic decode and ``samples`` − 1 sampled decodes of its team, by the task's
     profit (:func:`task_profit`, the select stage's return: reward on cover minus the pair costs); the deterministic
@@ -56,16 +57,17 @@ def select_search(
     :param samples: K, decodes per task including the deterministic one (1: that one alone)
     :param temperature: T of the sampled decodes (> 1: picks further from the argmax)
     :param generator: the random stream of the sampled decodes (None: torch's global one)
+    :param fixed_picks: decode by the fixed-length loop (:func:`.decode_round`), for a traced or captured search
     """
     d = head.embed_entities(view)  # the copies share their state's entity embeddings
-    base = decode_round(head, view, task_of, deterministic=True, embedded=d)
+    base = decode_round(head, view, task_of, deterministic=True, embedded=d, fixed_picks=fixed_picks)
     p0 = task_profit(base)
     if samples <= 1:
         return SelectSearchResult(base.rank, p0, p0)
     (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
     rep = select_copies(view, S)
     tr = task_of.repeat_interleave(S, 0)
-    st = decode_round(head, rep, tr, False, temperature=temperature, generator=generator, embedded=d)
+    st = decode_round(head, rep, tr, False, temperature=temperature, generator=generator, embedded=d, fixed_picks=fixed_picks)
     profit = th.cat([p0.unsqueeze(1), task_profit(st).view(B, S, M)], 1)  # (B, K, M), the deterministic decode first
     best = profit.argmax(1)  # (B, M), the first maximum
     ranks = th.cat([base.rank.unsqueeze(1), st.rank.view(B, S, M, N)], 1)

@@ -345,7 +345,9 @@ class TeacherForcedRound(NamedTuple):
     dyn: th.Tensor  # (T, B, N, SELECT_DYN)
 
 
-def teacher_forced(view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> TeacherForcedRound | None:
+def teacher_forced(
+    view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor, steps: int | None = None
+) -> TeacherForcedRound | None:
     """All states and transitions of a stored decoding round at once.
 
     Under teacher forcing every state is known in advance (remaining demand after t picks = relu(demand − Σ supplies of
@@ -353,14 +355,18 @@ def teacher_forced(view: ObsView, task_of: th.Tensor, pick_rank: th.Tensor) -> T
 
     :param task_of: (B, N) task each entity was a candidate of in this round (−1: none)
     :param pick_rank: (B, M, N) step at which task j picked entity i (−1: not picked)
-    :return: the round's transitions, or None when no task picked anything
+    :param steps: T, the steps to lay out; None: as many as the round's longest team (read on the host). A fixed T ≥
+        that (N always is) gives tensors of fixed shape, the steps after the last pick valid nowhere: what a traced or
+        captured step needs
+    :return: the round's transitions, or None when ``steps`` is None and no task picked anything
     """
     cand = task_of >= 0
     # (B, N): step at which the entity's own task picked it, −1 if never (or if it is no candidate)
     rank_own = th.where(cand, own_column(pick_rank.transpose(1, 2), task_of), -1)
-    steps = int(rank_own.max().item()) + 1
-    if steps <= 0:
-        return None
+    if steps is None:
+        steps = int(rank_own.max().item()) + 1
+        if steps <= 0:
+            return None
     M = pick_rank.shape[1]
     pc_own = own_column(view.pair_cost, task_of)  # (B, N)
     seg = task_of.clamp_min(0)

@@ -207,7 +207,7 @@ class SelectUpdate:
             actor_loss = actor_loss + cfg["search_coef"] * found.loss
         logs["select_actor_loss"].append(optimizer_step(m.selector.optimizer, actor_loss))
         if m.log_select_ent_coef is not None and m.select_ent_coef_optimizer is not None:
-            ent_loss = losses.ent_coef_loss(m.log_select_ent_coef, select.entropy, select.target_entropy)
+            ent_loss = losses.ent_coef_loss(m.log_select_ent_coef, select.entropy, select.target_entropy, select.weight)
             logs["select_ent_coef_loss"].append(optimizer_step(m.select_ent_coef_optimizer, ent_loss))
 
     def update_target(self) -> None:

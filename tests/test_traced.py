@@ -1,0 +1,81 @@
+"""The losses of a gradient step laid out with fixed shapes (``steps``): the eager losses up to rounding, and one graph
+with no break under ``torch.compile``'s tracer, which a captured step (CUDA graphs) needs."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+import torch as th
+import torch._dynamo
+
+import envs  # noqa: F401  (registers the TaskAlloc ids)
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.common.torch_layers import ObsView, parse_obs
+from sb3_taskalloc.two_stage_sac import losses
+
+
+@pytest.fixture(scope="module")
+def filled() -> tuple[TwoStageSAC, ObsView, th.Tensor, th.Tensor]:
+    """RBF with its first 12 robots (the padded loops trace in seconds), the zoo's team search, 48 steps collected;
+    16 rows of the replay buffer."""
+    env = gym.make("TaskAlloc/RBF-v0", entity_rows=tuple(range(12)))
+    model = TwoStageSAC(
+        "TAMPolicy", env, learning_starts=48, seed=0, device="cpu", select_kwargs={"search_coef": 30.0, "search_samples": 8}
+    )
+    with pytest.warns(UserWarning, match="within the warm-up"):
+        model.learn(48)  # the warm-up alone: decisions stored, nothing trained
+    th.manual_seed(1)
+    data = model.replay_buffer.sample(16)
+    return model, parse_obs(data.observations), data.candidates, data.pick_rank
+
+
+def select_losses(model: TwoStageSAC, view: ObsView, cand: th.Tensor, rank: th.Tensor, steps: int | None):
+    return losses.select_losses(
+        model.selector, model.select_critic, model.select_critic_target, view, cand, rank, True, th.tensor(0.1), 0.5,
+        model.policy.selector_prior, 0.5, steps=steps,
+    )  # fmt: skip
+
+
+def test_padded_select_losses_are_the_eager_ones(filled):
+    """Padded to N pick steps and weighted, the select stage's losses, targets and temperature loss are the eager ones
+    up to rounding; the team search's distillation term, from the same random stream, too."""
+    model, view, cand, rank = filled
+    N = rank.shape[-1]
+    eager, padded = select_losses(model, view, cand, rank, None), select_losses(model, view, cand, rank, N)
+    assert eager is not None and padded is not None and padded.weight is not None
+    assert eager.n == int(padded.n) > 8
+    assert padded.target.shape[0] == N > int(padded.weight.gt(0).any((1, 2)).sum())  # steps after the last pick, weight 0
+    th.testing.assert_close(padded.critic_loss, eager.critic_loss)
+    th.testing.assert_close(padded.actor_loss, eager.actor_loss)
+    th.testing.assert_close(padded.target[padded.weight > 0], eager.target)
+    log_alpha = th.tensor([-1.5])
+    th.testing.assert_close(
+        losses.ent_coef_loss(log_alpha, padded.entropy, padded.target_entropy, padded.weight),
+        losses.ent_coef_loss(log_alpha, eager.entropy, eager.target_entropy),
+    )
+    found = []
+    for steps in (None, N):
+        th.manual_seed(2)
+        found.append(losses.select_search_loss(model.selector, view, cand, 8, 1.0, steps))
+    assert found[0].loss != 0 and 0 < found[0].improved < 1  # the search found better teams for some tasks
+    for a, b in zip(*found, strict=True):
+        th.testing.assert_close(a, b)
+
+
+def test_padded_select_step_traces_whole(filled):
+    """The select stage's losses with the search term, padded, trace as one graph with no break
+    (``torch._dynamo.explain``, the tracer of ``torch.compile(fullgraph=True)``); the eager losses do not."""
+    model, view, cand, rank = filled
+    N = rank.shape[-1]
+
+    def step(view: ObsView, cand: th.Tensor, rank: th.Tensor, steps: int | None) -> tuple[th.Tensor, th.Tensor]:
+        select = select_losses(model, view, cand, rank, steps)
+        assert select is not None
+        search = losses.select_search_loss(model.selector, view, cand, 8, 1.0, steps)
+        return select.critic_loss, select.actor_loss + 30.0 * search.loss
+
+    torch._dynamo.reset()
+    padded = torch._dynamo.explain(step)(view, cand, rank, N)
+    assert padded.graph_count == 1 and padded.graph_break_count == 0, padded.break_reasons
+    eager = torch._dynamo.explain(step)(view, cand, rank, None)
+    assert eager.graph_break_count > 0  # the host reads that the padding removes
