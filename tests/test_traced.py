@@ -79,3 +79,40 @@ def test_padded_select_step_traces_whole(filled):
     assert padded.graph_count == 1 and padded.graph_break_count == 0, padded.break_reasons
     eager = torch._dynamo.explain(step)(view, cand, rank, None)
     assert eager.graph_break_count > 0  # the host reads that the padding removes
+
+
+def test_preassign_losses_trace_whole(filled):
+    """Stage 1's losses (target, critic, actor with the critic held constant, temperature over weighted states) trace
+    as one graph with no break; the weighted temperature loss is the selected one up to rounding, and the actor loss
+    gives the critics no gradient."""
+    from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate, temperature
+
+    model = filled[0]
+    th.manual_seed(3)
+    data = model.replay_buffer.sample(16)
+    view, next_view = parse_obs(data.observations), parse_obs(data.next_observations)
+    busy = th.arange(16) < 3  # three states whose entities are all busy: no free entity, no entropy to count
+    view = view._replace(entity_mask=view.entity_mask & ~busy.unsqueeze(1))
+    update = PreAssignUpdate(model)
+    assert model.actor is not None and model.critic is not None and model.log_ent_coef is not None
+
+    def step(view: ObsView, next_view: ObsView, weighted: bool) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        alpha = temperature(model.log_ent_coef, model.ent_coef_tensor)
+        critic = update.critic_loss(view, next_view, data, alpha)
+        dist = model.actor(view)
+        actor = losses.preassign_actor_loss(dist, model.critic, critic.contexts, view, alpha, model.policy.actor_prior, 0.5)
+        entropy = losses.preassign_entropy(dist, view, model.target_entropy_ratio, weighted)
+        return critic.loss, actor, losses.ent_coef_loss(model.log_ent_coef, entropy.entropy, entropy.target, entropy.weight)
+
+    free = view.assignable.any(1)
+    assert 0 < int(free.sum()) == len(free) - 3  # the weights matter
+    selected, weighted = step(view, next_view, False), step(view, next_view, True)
+    for a, b in zip(selected, weighted, strict=True):
+        th.testing.assert_close(a, b)
+    model.critic.zero_grad(set_to_none=True)
+    selected[1].backward()
+    assert all(p.grad is None for p in model.critic.parameters())
+    assert any(p.grad is not None and bool(p.grad.any()) for p in model.actor.parameters())
+    torch._dynamo.reset()
+    explained = torch._dynamo.explain(step)(view, next_view, True)
+    assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons

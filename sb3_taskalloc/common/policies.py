@@ -140,7 +140,14 @@ class TwinCritic(nn.Module):
     def size_agnostic(self) -> bool:
         return all(q.size_agnostic for q in self.q_networks)
 
-    def forward(self, view: ObsView, assign: th.Tensor) -> tuple[th.Tensor, ...]:
+    def forward(
+        self, view: ObsView | None, assign: th.Tensor, contexts: list[CriticContext] | None = None
+    ) -> tuple[th.Tensor, ...]:
+        """Each critic's Q_tot of ``assign`` in ``view``, or from the states' :meth:`contexts` where given (``view`` is
+        then not read)."""
+        if contexts is not None:
+            return self.mix(contexts, assign)
+        assert view is not None
         return tuple(q(view, assign) for q in self.q_networks)
 
     def contexts(self, view: ObsView) -> list[CriticContext]:

@@ -8,12 +8,9 @@ skipped when the weight is 0 or there is no prior.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import NamedTuple
 
 import torch as th
-from torch import nn
 from torch.nn import functional as F
 
 from sb3_taskalloc.common.distributions import MaskedCategorical, SegmentedCategorical, segment_sum
@@ -23,17 +20,12 @@ from sb3_taskalloc.two_stage_sac.search import select_search
 from sb3_taskalloc.two_stage_sac.select_stage import TeacherForcedRound, own_column, stored_rounds, teacher_forced
 
 
-@contextmanager
-def frozen(module: nn.Module) -> Iterator[None]:
-    """Treat ``module``'s parameters as constants inside the block (no gradient, no backward pass through it)."""
-    params = [p for p in module.parameters() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for p in params:
-            p.requires_grad_(True)
+def constant_mix(critic: TwinCritic, contexts: list[CriticContext], assign: th.Tensor) -> tuple[th.Tensor, ...]:
+    """``critic.mix(contexts, assign)`` with the critic's parameters as constants: autograd records only the path through
+    ``assign`` (and the contexts, which the actor loss detaches), and no gradient reaches the critic. Unlike switching
+    ``requires_grad`` off and on around the call, this traces whole (``torch.compile``)."""
+    params = {name: p.detach() for name, p in critic.named_parameters()}
+    return th.func.functional_call(critic, params, (None, assign), {"contexts": contexts})  # type: ignore[no-any-return]
 
 
 # ---------------------------------------------------------------------------------------------- stage 1: pre-assign
@@ -50,17 +42,24 @@ def state_entropy(dist: MaskedCategorical, view: ObsView, per_entity: bool = Fal
 
 
 class EntropyTerms(NamedTuple):
-    entropy: th.Tensor  # mean per-entity entropy H̄(s) of each state with a free entity
+    entropy: th.Tensor  # mean per-entity entropy H̄(s) of each state with a free entity; weighted: of every state
     target: th.Tensor  # its target H̄* = ratio × mean_i log(#valid tasks)
+    weight: th.Tensor | None = None  # weighted: each state's weight in the mean, 1 / #states with a free entity, else 0
 
 
-def preassign_entropy(dist: MaskedCategorical, view: ObsView, target_entropy_ratio: float) -> EntropyTerms:
-    """Statistics of the temperature loss (implementation detail 4) over the states that have a free entity."""
+def preassign_entropy(
+    dist: MaskedCategorical, view: ObsView, target_entropy_ratio: float, weighted: bool = False
+) -> EntropyTerms:
+    """Statistics of the temperature loss (implementation detail 4) over the states that have a free entity, selected,
+    or with ``weighted`` kept in place with a weight of 0 where there is none: a fixed shape and no host read, which
+    traces as one graph (``torch.compile``)."""
     n_free = view.assignable.sum(1)
     has_free = n_free > 0
-    mean_entropy = (dist.entropy().sum(1) / n_free.clamp_min(1))[has_free]
-    n_open = view.task_mask.sum(1).float()
-    return EntropyTerms(mean_entropy, (target_entropy_ratio * th.log(n_open.clamp_min(1)))[has_free])
+    mean_entropy = dist.entropy().sum(1) / n_free.clamp_min(1)
+    target = target_entropy_ratio * th.log(view.task_mask.sum(1).float().clamp_min(1))
+    if weighted:
+        return EntropyTerms(mean_entropy, target, has_free.float() / has_free.sum().clamp_min(1))
+    return EntropyTerms(mean_entropy[has_free], target[has_free])
 
 
 def preassign_actor_loss(
@@ -85,8 +84,7 @@ def preassign_actor_loss(
     :param prior: the frozen initial actor π₀; :param prior_coef: β
     :param entropy_per_entity: the bonus is the mean per-entity entropy, as in the critic's target
     """
-    with frozen(critic):
-        q_pi = th.stack(critic.mix([ctx.detach() for ctx in contexts], dist.probs), dim=0).min(0).values
+    q_pi = th.stack(constant_mix(critic, [ctx.detach() for ctx in contexts], dist.probs), dim=0).min(0).values
     loss = -alpha * state_entropy(dist, view, entropy_per_entity) - q_pi
     if prior_coef > 0 and prior is not None:
         with th.no_grad():

@@ -145,7 +145,7 @@ class PreAssignUpdate:
         if m.log_ent_coef is not None and m.ent_coef_optimizer is not None:
             entropy = losses.preassign_entropy(dist, obs, m.target_entropy_ratio)
             if entropy.entropy.numel() > 0:
-                ent_loss = losses.ent_coef_loss(m.log_ent_coef, entropy.entropy, entropy.target)
+                ent_loss = losses.ent_coef_loss(m.log_ent_coef, entropy.entropy, entropy.target, entropy.weight)
                 logs["ent_coef_loss"].append(optimizer_step(m.ent_coef_optimizer, ent_loss))
 
     def update_target(self) -> None:
