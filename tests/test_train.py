@@ -695,7 +695,7 @@ def forced_steps(head, view: ObsView, task_of: th.Tensor, rank: th.Tensor):
         st.advance(picks, valid)
 
 
-def test_select_search_loss_distils_the_best_team(monkeypatch):
+def test_select_search_loss_distils_the_best_team():
     """``select_kwargs["search_coef"]`` (implementation detail 18): per task, the search's team is at least as
     profitable as the
     deterministic one, its teacher-forced rewards add up to that profit, and the loss is −Σ_t log π(a*_t|s*_t) over the
@@ -743,17 +743,6 @@ def test_select_search_loss_distils_the_best_team(monkeypatch):
     model.learn(60)
     model.train(gradient_steps=1, batch_size=8)
     assert "train/select_search_improved" in model.logger.name_to_value
-    # ``search_rows``: the term searches the first of the select stage's rows alone (each costs its decodes).
-    rows: list[int] = []
-    real = losses.select_search_loss
-    monkeypatch.setattr(losses, "select_search_loss", lambda s, v, *a: rows.append(len(v.reward)) or real(s, v, *a))
-    model.train(gradient_steps=1, batch_size=8)
-    model.select_kwargs["search_rows"] = 2
-    model.train(gradient_steps=1, batch_size=8)
-    assert rows == [4, 2]
-    for bad in ({"search_rows": 0}, {"search_rows": 17}, {"search_rows": 2.0}):
-        with pytest.raises(ValueError, match="search_rows"):
-            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", select_kwargs=bad)
 
 
 def test_distill_select_teaches_the_pointer_the_exact_cover():

@@ -42,7 +42,6 @@ SELECT_DEFAULTS: dict[str, Any] = {
     "search_coef": 0.0,
     "search_samples": 16,
     "search_temperature": 1.0,
-    "search_rows": None,
 }
 
 
@@ -52,13 +51,6 @@ def check_select_kwargs(select_kwargs: dict[str, Any] | None) -> dict[str, Any]:
     check_counts({f"select_kwargs[{k!r}]": settings[k] for k in ("batch_size", "search_samples")})
     check_finite({f"select_kwargs[{k!r}]": settings[k] for k in ("prior_coef", "search_coef")}, inclusive=True)
     check_finite({"select_kwargs['search_temperature']": settings["search_temperature"]})
-    if settings["search_rows"] is not None:
-        check_counts({"select_kwargs['search_rows']": settings["search_rows"]})
-        if settings["search_rows"] > settings["batch_size"]:
-            raise ValueError(
-                f"select_kwargs['search_rows'] ({settings['search_rows']}) must be at most the select stage's rows, "
-                f"select_kwargs['batch_size'] ({settings['batch_size']})"
-            )
     return settings
 
 

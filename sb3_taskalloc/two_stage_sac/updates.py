@@ -193,14 +193,7 @@ class SelectUpdate:
         logs["select_critic_loss"].append(optimizer_step(m.select_critic.optimizer, select.critic_loss))
         actor_loss = select.actor_loss
         if cfg["search_coef"] > 0:  # each row costs search_samples decodes of every task
-            searched = slice(0, cfg["search_rows"])  # None: every row
-            found = losses.select_search_loss(
-                m.selector,
-                ObsView(*(x[searched] for x in view)),
-                candidates[searched],
-                cfg["search_samples"],
-                cfg["search_temperature"],
-            )
+            found = losses.select_search_loss(m.selector, view, candidates, cfg["search_samples"], cfg["search_temperature"])
             logs["select_search_loss"].append(found.loss.item())
             logs["select_search_improved"].append(found.improved.item())
             logs["select_search_gain"].append(found.gain.item())
