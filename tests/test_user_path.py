@@ -32,6 +32,23 @@ def test_a_diverging_learning_rate_stops_training_with_its_cause():
     assert isinstance(DivergenceError("x"), FloatingPointError)
 
 
+def test_the_logs_of_a_train_call_are_read_at_once_and_checked():
+    """``train`` keeps each logged value as a tensor and reads them all on the host at the end of the call: the same
+    floats, in order; a non-finite one is a divergence naming its key and the call's gradient steps."""
+    from sb3_taskalloc.two_stage_sac.updates import read_logs
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", seed=0, policy_kwargs=SMALL)
+    model._n_updates = 6
+    logs = {"critic_loss": [th.tensor(0.5), th.tensor(0.25), th.tensor(1 / 3)], "ent_coef": [th.tensor([0.1])] * 3}
+    read = read_logs(model, logs, 3)
+    assert read == {"critic_loss": [0.5, 0.25, th.tensor(1 / 3).item()], "ent_coef": [th.tensor(0.1).item()] * 3}
+    logs["actor_loss"] = [th.tensor(1.0), th.tensor(math.nan), th.tensor(2.0)]
+    with pytest.raises(DivergenceError, match=r"diverged in gradient steps 7–9 \(env step 0\): actor_loss = nan"):
+        read_logs(model, logs, 3)
+    with pytest.raises(DivergenceError, match=r"diverged at gradient step 7 .*: actor_loss = inf"):
+        read_logs(model, {"actor_loss": [th.tensor(math.inf)]}, 1)
+
+
 def test_a_non_finite_parameter_is_named():
     model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=8, batch_size=8, seed=0, policy_kwargs=SMALL)
     model.learn(12)

@@ -164,7 +164,7 @@ def _fit_labels(
     log-likelihood (:func:`.losses.cover_imitation_loss`). :return: the last pass's mean loss"""
     head = model.policy.selector.head
     model.policy.set_training_mode(True)
-    epoch_losses: list[float] = []
+    epoch_losses: list[th.Tensor] = []
     for _ in range(epochs):
         order = rng.permutation(len(labels))
         epoch_losses = []
@@ -176,4 +176,4 @@ def _fit_labels(
                 optimizer_step(optimizer, losses.cover_imitation_loss(head, view, task_of, rank, labelled, as_set))
             )
     model.policy.set_training_mode(False)
-    return float(np.mean(epoch_losses)) if epoch_losses else float("nan")
+    return float(np.mean(th.stack(epoch_losses).tolist())) if epoch_losses else float("nan")

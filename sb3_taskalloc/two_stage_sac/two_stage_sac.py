@@ -266,7 +266,7 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         if self.actor is not None and self.critic is not None:
             optimizers += [self.actor.optimizer, self.critic.optimizer]
         self._update_learning_rate(optimizers)
-        logs: dict[str, list[float]] = defaultdict(list)
+        logs: stage.Logs = defaultdict(list)
 
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[arg-type]
@@ -275,16 +275,16 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
             # critic → actor → temperature (sb3_taskalloc.two_stage_sac.updates).
             for update in self.updates:
                 update(obs, replay_data, logs)  # type: ignore[arg-type]
-            stage.check_losses(self, logs, gradient_step)
             # Target networks: Polyak averaging every ``target_update_interval`` gradient steps.
             if gradient_step % self.target_update_interval == 0:
                 for update in self.updates:
                     update.update_target()
 
+        read = stage.read_logs(self, logs, gradient_steps)
         self._n_updates += gradient_steps
         stage.check_parameters(self)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        for key, values in logs.items():
+        for key, values in read.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
     # ------------------------------------------------------------------ API

@@ -27,7 +27,9 @@ from sb3_taskalloc.common.utils import (
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
-Logs = dict[str, list[float]]
+#: Each logged value of the gradient steps of one ``train`` call, a detached tensor: the host reads them all at once at the
+#: end of the call (:func:`read_logs`), not once per value, which on CUDA would wait for the GPU each time.
+Logs = dict[str, list[th.Tensor]]
 
 
 def entropy_coefficient(
@@ -59,22 +61,31 @@ def temperature(log_alpha: th.Tensor | None, fixed: th.Tensor | None) -> th.Tens
     return th.exp(log_alpha.detach()) if log_alpha is not None else fixed  # type: ignore[return-value]
 
 
-def optimizer_step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> float:
-    """One step of ``optimizer`` on ``loss``; returns its value."""
+def optimizer_step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> th.Tensor:
+    """One step of ``optimizer`` on ``loss``; returns its value (detached)."""
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
-    return loss.item()
+    return loss.detach()
 
 
-def check_losses(model: TwoStageSAC, logs: Logs, gradient_step: int) -> None:
-    """Divergence is an error: a non-finite loss or temperature of this gradient step stops training, naming it."""
-    for key, values in logs.items():
-        if values and not math.isfinite(values[-1]):
+def read_logs(model: TwoStageSAC, logs: Logs, gradient_steps: int) -> dict[str, list[float]]:
+    """The logged values of ``gradient_steps`` steps, read on the host in one transfer. Divergence is an error: a
+    non-finite loss or temperature stops training, naming it and the steps it happened in."""
+    keys = list(logs)
+    flat = th.stack([v.reshape(()).float() for key in keys for v in logs[key]]).cpu().tolist() if keys else []
+    read, start = {}, 0
+    for key in keys:
+        read[key], start = flat[start : start + len(logs[key])], start + len(logs[key])
+        bad = [v for v in read[key] if not math.isfinite(v)]
+        if bad:
+            first, last = model._n_updates + 1, model._n_updates + gradient_steps
+            steps = f"at gradient step {last}" if first == last else f"in gradient steps {first}–{last}"
             raise DivergenceError(
-                f"training diverged at gradient step {model._n_updates + gradient_step + 1} (env step "
-                f"{model.num_timesteps}): {key} = {values[-1]}; lower the learning rate ({model.learning_rate!r})"
+                f"training diverged {steps} (env step {model.num_timesteps}): {key} = {bad[0]}; lower the learning "
+                f"rate ({model.learning_rate!r})"
             )
+    return read
 
 
 def check_parameters(model: TwoStageSAC) -> None:
@@ -125,17 +136,17 @@ class PreAssignUpdate:
         m = self.model
         assert m.actor is not None and m.critic is not None
         alpha = temperature(m.log_ent_coef, m.ent_coef_tensor)
-        logs["ent_coef"].append(alpha.item())
+        logs["ent_coef"].append(alpha.detach())
         # Target and critic.
         critic = self.critic_loss(obs, m.policy.parse(data.next_observations), data, alpha)
-        logs["critic_loss"].append(critic.loss.item())
+        logs["critic_loss"].append(critic.loss.detach())
         # Actor: −α·H(s) − min_k AMIX^k(Σ_j π_i(j|s) Q^k_i(s, j)) on the critic values above (detail 3), + β·KL(π ‖ π₀)
         # (detail 12). The parameters are disjoint, so one backward pass gives each network its own gradient.
         dist = m.actor(obs)
         actor_loss = losses.preassign_actor_loss(
             dist, m.critic, critic.contexts, obs, alpha, m.policy.actor_prior, m.prior_coef, m.entropy_bonus == "mean"
         )
-        logs["actor_loss"].append(actor_loss.item())
+        logs["actor_loss"].append(actor_loss.detach())
         m.critic.optimizer.zero_grad()
         m.actor.optimizer.zero_grad()
         (critic.loss + actor_loss).backward()
@@ -168,7 +179,7 @@ class SelectUpdate:
     def __call__(self, obs: ObsView, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
         m, cfg = self.model, self.model.select_kwargs
         alpha = temperature(m.log_select_ent_coef, m.select_ent_coef_tensor)
-        logs["select_ent_coef"].append(alpha.item())
+        logs["select_ent_coef"].append(alpha.detach())
         rows = slice(0, cfg["batch_size"])
         view = ObsView(*(x[rows] for x in obs))
         candidates = data.candidates[rows]
@@ -194,9 +205,9 @@ class SelectUpdate:
         actor_loss = select.actor_loss
         if cfg["search_coef"] > 0:  # each row costs search_samples decodes of every task
             found = losses.select_search_loss(m.selector, view, candidates, cfg["search_samples"], cfg["search_temperature"])
-            logs["select_search_loss"].append(found.loss.item())
-            logs["select_search_improved"].append(found.improved.item())
-            logs["select_search_gain"].append(found.gain.item())
+            logs["select_search_loss"].append(found.loss.detach())
+            logs["select_search_improved"].append(found.improved)
+            logs["select_search_gain"].append(found.gain)
             actor_loss = actor_loss + cfg["search_coef"] * found.loss
         logs["select_actor_loss"].append(optimizer_step(m.selector.optimizer, actor_loss))
         if m.log_select_ent_coef is not None and m.select_ent_coef_optimizer is not None:
