@@ -28,6 +28,12 @@ def constant_mix(critic: TwinCritic, contexts: list[CriticContext], assign: th.T
     return th.func.functional_call(critic, params, (None, assign), {"contexts": contexts})  # type: ignore[no-any-return]
 
 
+def mask_weights(mask: th.Tensor) -> th.Tensor:
+    """The weights of a mean over the entries of ``mask`` that a fixed-shape loss sums in place of selecting them:
+    1 / #entries where ``mask`` holds, else 0 (all 0 when it holds nowhere)."""
+    return mask.float() / mask.sum().clamp_min(1)
+
+
 # ---------------------------------------------------------------------------------------------- stage 1: pre-assign
 
 
@@ -58,7 +64,7 @@ def preassign_entropy(
     mean_entropy = dist.entropy().sum(1) / n_free.clamp_min(1)
     target = target_entropy_ratio * th.log(view.task_mask.sum(1).float().clamp_min(1))
     if weighted:
-        return EntropyTerms(mean_entropy, target, has_free.float() / has_free.sum().clamp_min(1))
+        return EntropyTerms(mean_entropy, target, mask_weights(has_free))
     return EntropyTerms(mean_entropy[has_free], target[has_free])
 
 
@@ -174,11 +180,10 @@ def select_losses(
     n_choices = segment_sum(tf.choices.float(), tf.seg, M)
     target_entropy = target_entropy_ratio * th.log(n_choices.clamp_min(1))
     if steps is not None:  # the same means, each transition weighted (1 / n where a pick happened, else 0)
-        n_valid = valid.sum()
-        weight = valid.float() / n_valid.clamp_min(1)
+        weight = mask_weights(valid)
         critic_loss = 0.5 * sum((((q_sa[..., k] - target) ** 2) * weight).sum() for k in range(q_sa.shape[-1]))
         return SelectLosses(
-            n_valid,
+            valid.sum(),
             critic_loss,  # type: ignore[arg-type]
             (actor * weight).sum(),
             target * valid,
@@ -224,11 +229,11 @@ def select_search_loss(
         improved = found.profit > found.base
         has = candidates.any(-1) & view.task_mask
     if steps is not None:  # the same means over weighted tasks, with no host read
-        n_has, n_improved = has.sum().clamp_min(1), improved.sum().clamp_min(1)
         log_p = team_log_prob(head, view, task_of, found.rank, steps)
         assert log_p is not None  # a fixed number of steps is always laid out
-        gain, share = ((found.profit - found.base) * has).sum() / n_has, (improved & has).sum() / n_has
-        return SelectSearchLoss(-(log_p * improved).sum() / n_improved, share, gain)
+        over_has = mask_weights(has)
+        gain, share = ((found.profit - found.base) * over_has).sum(), (improved * over_has).sum()
+        return SelectSearchLoss(-(log_p * mask_weights(improved)).sum(), share, gain)
     with th.no_grad():
         gain = (found.profit - found.base)[has].mean() if bool(has.any()) else found.profit.new_zeros(())
         share = improved[has].float().mean() if bool(has.any()) else found.profit.new_zeros(())
