@@ -1,5 +1,5 @@
-"""Mixers of the stage-1 critics: AMIX (the paper's attention-hypernetwork mixer), the per-task team value added to it,
-and the global MLP of "W/o AMIX"."""
+"""Mixers of the stage-1 critics: AMIX (the paper's attention-hypernetwork mixer), its linear form for the future
+critic, the per-task team value added to it, and the global MLP of "W/o AMIX"."""
 
 from __future__ import annotations
 
@@ -103,6 +103,37 @@ class AMIXMixer(nn.Module):
     def forward(self, q_i: th.Tensor, view: ObsView) -> th.Tensor:
         """:param q_i: (B, N) per-entity values; :return: (B,) Q_tot"""
         return self.mix(q_i, self.context(view))
+
+
+class LinearAMIXMixer(AMIXMixer):
+    """AMIX without its hidden non-linearity, for the future critic (implementation detail 24): Q_tot =
+    (Σ_i Q_i w_i + b)·|u| + c with the monotonic hyper-weights w_i = |(A V)_i|, i.e. Σ_i ω_i(s) Q_i + β(s) with
+    state-dependent weights ω_i(s) = w_i·|u| ≥ 0. Linear in the per-entity values, so an assignment's mixed value is a
+    sum of per-pair coefficients, which an exact solver maximises with the step's profit in one MILP (the
+    ``value_top`` decoder). The hypernetwork is AMIX's.
+
+    :param entity_dim: entity feature size
+    :param task_dim: task feature size
+    :param hidden_dim: hypernetwork width
+    :param hyper_bias: state-dependent bias (else a learned constant)
+    :param activation_fn: activation of the hyper-bias network
+    """
+
+    def __init__(
+        self,
+        entity_dim: int,
+        task_dim: int,
+        hidden_dim: int = 64,
+        hyper_bias: bool = True,
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ) -> None:
+        super().__init__(entity_dim, task_dim, hidden_dim, True, hyper_bias, activation_fn)
+
+    def mix(self, q_i: th.Tensor, ctx: MixContext) -> th.Tensor:
+        """:param q_i: (B, N) per-entity values; :param ctx: :meth:`context` of the states; :return: (B,) Q_tot"""
+        assert ctx.weights is not None  # monotonic hyper-weights
+        mixed = ((q_i * ctx.mask).unsqueeze(1) @ ctx.weights).squeeze(1)
+        return (mixed + ctx.bias) @ self.out_w.abs() + self.out_b
 
 
 class TeamValue(nn.Module):

@@ -14,6 +14,7 @@ import torch as th
 
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.two_stage_sac.losses import state_entropy
+from sb3_taskalloc.two_stage_sac.select_stage import Decision
 
 
 def _discounted(values: np.ndarray, gamma: float) -> np.ndarray:
@@ -114,7 +115,7 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
             action = decision.env_action[0].cpu().numpy()
             if t % stride == 0 and bool(view.assignable.any()):
                 key = 1_000 * s + t
-                q_c = _critic_value(policy, view, decision.candidates)
+                q_c = _critic_value(policy, view, decision)
                 q.append(q_c)
                 returns.append(_branch_returns(model, env, action, branches, _horizon(gamma), key=key))
                 free.append(float(view.assignable.sum()))
@@ -124,7 +125,7 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
                     other = policy.decide(view, deterministic=False)
                     if not th.equal(other.candidates, decision.candidates):
                         alt = _branch_returns(model, env, other.env_action[0].cpu().numpy(), branches, _horizon(gamma), key)
-                        gaps.append(q_c - _critic_value(policy, view, other.candidates))
+                        gaps.append(q_c - _critic_value(policy, view, other))
                         gap_returns.append(returns[-1] - alt)
             obs, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:
@@ -139,9 +140,11 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
     return figures
 
 
-def _critic_value(policy: Any, view: ObsView, candidates: th.Tensor) -> float:
-    """Q(s, c) = min_k AMIX^k of one state and its candidate sets (1, M, N)."""
-    return float(th.stack(policy.critic(view, candidates.transpose(1, 2).float()), 0).min(0).values.item())
+def _critic_value(policy: Any, view: ObsView, decision: Decision) -> float:
+    """Q(s, ·) = min_k of the critics' values of one state's decision: AMIX^k(c) for the paper's critic, P + F^k for the
+    future critic (:meth:`~sb3_taskalloc.common.policies.TwinCritic.decision_values`)."""
+    values = policy.critic.decision_values(view, decision.candidates, decision.env_action)
+    return float(th.stack(values, 0).min(0).values.item())
 
 
 def advantage_figures(gaps: np.ndarray, differences: np.ndarray) -> dict[str, Any]:
@@ -213,8 +216,9 @@ def critic_figures(model: Any, sampled: list[dict[str, Any]], within: slice, lea
         g_soft.append(_discounted(e[learned] + bonus_t, gamma)[within])
         n = len(g[-1])
         states = ObsView(*(x[:n] for x in view))  # the states decided in within the limit
-        assign = th.as_tensor(np.stack(e["candidates"][:n]), device=model.device).transpose(1, 2).float()
-        q.append(th.stack(policy.critic(states, assign), 0).min(0).values.cpu().numpy())
+        candidates = th.as_tensor(np.stack(e["candidates"][:n]), device=model.device)
+        actions = th.as_tensor(np.stack(e["actions"][:n]), device=model.device)
+        q.append(th.stack(policy.critic.decision_values(states, candidates, actions), 0).min(0).values.cpu().numpy())
         if policy.actor_prior is not None:
             now, prior = policy.actor(states), policy.actor_prior(states)
             free = states.assignable

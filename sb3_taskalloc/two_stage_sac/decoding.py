@@ -23,9 +23,10 @@ import numpy as np
 import torch as th
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
+from sb3_taskalloc.common.policies import FutureCritic
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
-from sb3_taskalloc.two_stage_sac.search import cover_search, exact_covers, sampled_search, select_search
+from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search, exact_covers, sampled_search, select_search
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round, env_action_of
 
 if TYPE_CHECKING:
@@ -213,6 +214,59 @@ class ExactTopDecoder(ExactCoversDecoder):
         return covers, (argmax.unsqueeze(1) == tasks).any(-1)
 
 
+@register_decoder
+class ValueTopDecoder(ExactTopDecoder):
+    """``exact_top`` on the objective P + F of the future critic (``TAMPolicy(mixer="future")``): each pair's cost is
+    lowered by its learned future value g_ij = ∂F/∂a_ij (:func:`future_pair_values`; F is linear in the assignment),
+    so each round's exact cover maximises this step's profit plus what the assignment leaves for later, as NeurADP's
+    ILP adds per-vehicle values to its scores. Teams are weighed by the same objective: the pointer's argmax team
+    against the exact cover of its candidates. With F = 0 it is ``exact_top`` of the same ``top`` (implementation
+    detail 25).
+    """
+
+    name = "value_top"
+
+    def __init__(self, top: int = 2, seed: int = 0) -> None:
+        super().__init__(top, seed)
+
+    def preassign(
+        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        return super().preassign(policy, value_aware_view(policy, view), dist, first_round)
+
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        head = policy.selector.head
+        adjusted = value_aware_view(policy, view)
+        base = decode_round(head, view, task_of, deterministic=True)  # the pointer on the costs it was trained on
+        members = (base.rank >= 0).float()  # (B, M, N)
+        p0 = base.kept() * (view.reward - (members * adjusted.pair_cost.transpose(1, 2)).sum(-1))
+        found = cover_search(head, adjusted, task_of, against=SelectSearchResult(base.rank, p0, p0))
+        return found.rank, found.profit > 0
+
+
+def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
+    """(B, N, M) g_ij = ∂ min_k F^k(s, a)/∂a_ij at a = 0 (every entity left free): what sending entity i to task j adds
+    to the future critics' value (:class:`~sb3_taskalloc.common.policies.FutureCritic`), 0 on invalid pairs. Each F^k
+    is linear in a, so g is each critic's exact per-pair value (of the critic that is lower with every entity free)."""
+    critic = policy.critic
+    if critic is None or not all(isinstance(q, FutureCritic) for q in critic.q_networks):
+        raise ValueError("the value_top decoder needs the future critic: train with TAMPolicy(mixer='future')")
+    with th.inference_mode(False), th.enable_grad():
+        state = ObsView(*(x.clone() for x in view))  # decisions run in inference mode; autograd needs plain tensors
+        assign = th.zeros_like(state.pair_cost, requires_grad=True)
+        contexts = [ctx.detach() for ctx in critic.contexts(state)]
+        future = th.stack(critic.mix(contexts, assign), 0).min(0).values
+        (grad,) = th.autograd.grad(future.sum(), assign)
+    return grad.detach() * view.valid
+
+
+def value_aware_view(policy: TAMPolicy, view: ObsView) -> ObsView:
+    """``view`` with each valid pair's cost lowered by its future value (:func:`future_pair_values`), at least 0: the
+    exact solvers maximise reward − cost, so this makes them maximise P + F (a pair whose future value exceeds its cost
+    costs nothing rather than paying, which keeps the team searches' bounds valid)."""
+    return view._replace(pair_cost=(view.pair_cost - future_pair_values(policy, view)).clamp_min(0.0))
+
+
 class DecodingMixin:
     """For an SB3 algorithm whose policy has a :attr:`decoder`: choose it by name, for every later deterministic
     decision or for one block or call."""
@@ -264,8 +318,10 @@ def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:
         raise ValueError(f"decoding strategy {name!r}: {error}") from None
 
 
-#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up.
+#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up; and the
+#: argmax at both stages, by which the future critic's target decides whatever decoder a user set.
 SAMPLED, UNIFORM = get_decoding_strategy("sampled"), get_decoding_strategy("uniform")
+ARGMAX = get_decoding_strategy("argmax")
 
 
 def decide_preassigned(

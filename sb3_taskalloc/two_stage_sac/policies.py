@@ -45,7 +45,8 @@ HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embe
 #: Default (κ, κ_s) of a rule-initialised policy (implementation detail 10): sampled decisions stay near the rule's argmax.
 RULE_LOGIT_SCALES = (100.0, 10.0)
 
-#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
+#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them, the
+#: "future" one reads only ``hyper_bias``: it is linear and monotonic, with no team value).
 MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
 
 
@@ -93,7 +94,10 @@ class TAMPolicy(BasePolicy):
     :param task_order: order of the tasks without pre-assignment: ``"sequential"`` (slot order, the default) or
         ``"random"``; only with ``preassign=False``
     :param encoder: ``"tam"`` (size-agnostic attention module) or ``"mlp"`` (the "W/o TAM" ablation, size-specific)
-    :param mixer: ``"amix"`` or ``"global"`` (the "W/o AMIX" ablation: one MLP over the flattened state and c)
+    :param mixer: ``"amix"`` (the paper's), ``"future"`` (Q = P + F: the exact step profit plus AMIX-mixed values of the
+        executed assignment's future, :class:`~sb3_taskalloc.common.policies.FutureCritic`, read by the ``value_top``
+        decoder; trained with the pre-assign actor held) or ``"global"`` (the "W/o AMIX" ablation: one MLP over the
+        flattened state and c)
     :param mixer_kwargs: settings of the AMIX critic over :data:`MIXER_DEFAULTS`: ``monotonic`` (QMIX-style weights),
         ``hyper_bias`` (a state-dependent bias), ``team_value`` (implementation detail 1; ``False``: the paper's critic)
     :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (its inverse temperature; the paper's
@@ -132,7 +136,7 @@ class TAMPolicy(BasePolicy):
         preassign: bool = True,
         task_order: Literal["sequential", "random"] | None = None,
         encoder: Literal["tam", "mlp"] = "tam",
-        mixer: Literal["amix", "global"] = "amix",
+        mixer: Literal["amix", "future", "global"] = "amix",
         mixer_kwargs: dict[str, bool] | None = None,
         logit_scale: float | None = None,
         select_logit_scale: float | None = None,

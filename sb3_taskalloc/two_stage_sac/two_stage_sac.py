@@ -66,7 +66,8 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     :param warmup_exploration: the warm-up's decisions: ``"uniform"`` (SB3's random warm-up) or ``"policy"`` (detail 8)
     :param train_preassign_actor: whether stage 1 learns: the pre-assign actor, its temperature and the AMIX critics
         that train it. ``False`` holds the actor at its initial rule while the select stage learns, and its critics,
-        which nothing else reads, do not train (implementation detail 23)
+        which nothing else reads, do not train (implementation detail 23), except the future critic
+        (``policy_kwargs={"mixer": "future"}``, which needs ``False``), read by the ``value_top`` decoder
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ its initial rule (detail 12)
     :param select_kwargs: the select stage's settings over :data:`~sb3_taskalloc.two_stage_sac.updates.SELECT_DEFAULTS`
     :param target_update_interval: target network update interval (gradient steps)
@@ -201,10 +202,11 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
             self.select_kwargs["ent_coef"], "select_kwargs['ent_coef']", self.device, lr
         )
         # One update per trained stage: none for the pre-assignment of a policy without it ("W/o Pre"), or held at its
-        # rule, where training its critics would change no decision (detail 23).
+        # rule, where training its critics would change no decision (detail 23), unless a decoder reads them.
         self.updates: list[stage.PreAssignUpdate | stage.SelectUpdate] = [stage.SelectUpdate(self)]
-        if self.actor is not None and self.train_preassign_actor:
-            self.updates.insert(0, stage.PreAssignUpdate(self))
+        preassign = stage.preassign_update(self)
+        if preassign is not None:
+            self.updates.insert(0, preassign)
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
