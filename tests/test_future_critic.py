@@ -59,9 +59,9 @@ def test_the_step_profit_is_the_commitment_reward_team_by_team(env_id: str) -> N
     assert served > 0  # some step sent a team, so the comparison covered a non-zero profit
 
 
-@pytest.fixture(scope="module")
-def future_model() -> TwoStageSAC:
-    model = TwoStageSAC(
+def small_future_model() -> TwoStageSAC:
+    """MT with the future critic and the pre-assign actor held, small enough to train in seconds."""
+    return TwoStageSAC(
         "TAMPolicy",
         "TaskAlloc/MT-v0",
         policy_kwargs={"mixer": "future", "hidden_dim": 16},
@@ -72,22 +72,15 @@ def future_model() -> TwoStageSAC:
         seed=0,
         device="cpu",
     )
-    model.learn(60)
-    return model
+
+
+@pytest.fixture(scope="module")
+def future_model() -> TwoStageSAC:
+    return small_future_model().learn(60)
 
 
 def test_the_future_critic_is_chosen_by_name_and_trains_with_the_actor_held() -> None:
-    model = TwoStageSAC(
-        "TAMPolicy",
-        "TaskAlloc/MT-v0",
-        policy_kwargs={"mixer": "future", "hidden_dim": 16},
-        train_preassign_actor=False,
-        learning_starts=40,
-        batch_size=16,
-        buffer_size=1000,
-        seed=0,
-        device="cpu",
-    )
+    model = small_future_model()
     assert all(isinstance(q, FutureCritic) for q in model.critic.q_networks)
     assert isinstance(model.updates[0], FutureCriticUpdate)
     actor = [p.detach().clone() for p in model.actor.parameters()]
