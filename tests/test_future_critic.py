@@ -213,3 +213,13 @@ def test_the_value_aware_decoder_maximises_profit_plus_future_value(future_model
     # the decision-time benchmark times value_top for a model with the future critic only
     assert "value_top" in [row[0] for row in decoder_rows(future_model)]
     assert "value_top" not in [row[0] for row in decoder_rows(paper)]
+
+
+def test_the_diagnosis_reads_the_future_critic_with_the_actor_held(future_model: TwoStageSAC) -> None:
+    """The held actor's future critic trains, so the diagnosis (and the learning experiment) report its figures; a held
+    actor with the paper's critic, which does not train, has none."""
+    from sb3_taskalloc.experiments.diagnose import diagnose
+
+    assert np.isfinite(diagnose(future_model, "TaskAlloc/MT-v0", episodes=1, branches=0).q_corr)
+    held = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"hidden_dim": 16}, train_preassign_actor=False)
+    assert np.isnan(diagnose(held, "TaskAlloc/MT-v0", episodes=1, branches=0).q_corr)

@@ -55,6 +55,7 @@ import torch as th
 from sb3_taskalloc.baselines.greedy import COVER_TOL
 from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.experiments.calibration import branch_calibration, critic_figures, unlimited_env
+from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate
 
 
 @dataclass
@@ -220,8 +221,9 @@ def diagnose(
     :param branch_stride: every ``branch_stride``-th state of an episode is branched
     """
     policy, gamma = model.policy, float(model.gamma)
-    # The stage-1 critics train only with pre-assignment and its actor learning (``train_preassign_actor``).
-    critic = policy.actor is not None and policy.critic is not None and getattr(model, "train_preassign_actor", True)
+    # The stage-1 critics train where a stage-1 update runs: the pre-assign actor learns, or the future critic trains
+    # with the actor held (:func:`~sb3_taskalloc.two_stage_sac.updates.preassign_update`).
+    critic = policy.critic is not None and any(isinstance(u, PreAssignUpdate) for u in getattr(model, "updates", ()))
     branches = branches if critic else 0
     alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())
     env = gym.make(env_id)

@@ -152,7 +152,8 @@ def milp_gap(run: LearnRun, records: list[dict[str, Any]]) -> str:
 def critic_lines(records: list[dict[str, Any]]) -> list[str]:
     """The stage-1 critic's figures against their targets, or that it did not train."""
     if not critic_trained(records):
-        return ["- critic: not trained (no pre-assignment, or its actor held at its rule: `train_preassign_actor=False`)"]
+        held = "its actor held at its rule with the AMIX critic: `train_preassign_actor=False`"
+        return [f"- critic: not trained (no pre-assignment, or {held})"]
     n = len(records)
     corr = np.array([r["q_corr"] for r in records])
     scale = np.array([r["q_scale"] for r in records])
