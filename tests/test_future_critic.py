@@ -5,6 +5,7 @@ decoder against an enumeration."""
 from __future__ import annotations
 
 import itertools
+import json
 from unittest.mock import patch
 
 import gymnasium as gym
@@ -223,3 +224,20 @@ def test_the_diagnosis_reads_the_future_critic_with_the_actor_held(future_model:
     assert np.isfinite(diagnose(future_model, "TaskAlloc/MT-v0", episodes=1, branches=0).q_corr)
     held = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"hidden_dim": 16}, train_preassign_actor=False)
     assert np.isnan(diagnose(held, "TaskAlloc/MT-v0", episodes=1, branches=0).q_corr)
+
+
+def test_the_learning_experiment_trains_and_reevaluates_the_future_critic(tmp_path) -> None:
+    """The learning experiment with the future critic and the actor held: the report reads the critic (it trains), and
+    the saved models are evaluated again by ``value_top``, their untrained twins built with the actor held too."""
+    from sb3_taskalloc.experiments import learn
+
+    kwargs = {"learning_starts": 2, "batch_size": 4, "train_preassign_actor": False}
+    kwargs["policy_kwargs"] = {"hidden_dim": 8, "mixer": "future"}
+    run = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                         out=tmp_path, select_dagger=0)  # fmt: skip
+    text = run.run(progress=False).read_text()
+    assert "- critic: not trained" not in text and "corr(Q, G)" in text
+    searched = run.reevaluate(decoder="value_top", decoder_kwargs={"top": 2})
+    assert searched.name == "Almighty_decoder_value_top_top_2.md"
+    rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
+    assert len(rows[0]["trained"]) == len(rows[0]["untrained"]) == 2

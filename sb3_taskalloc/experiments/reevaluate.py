@@ -88,7 +88,14 @@ def reevaluate(
             rows.append(saved)
             continue
         seeds = eval_seeds(seed, run.eval_episodes + more_episodes)[run.eval_episodes if more_episodes else 0 :]
-        untrained = TwoStageSAC("TAMPolicy", env_id, seed=seed, device="cpu", policy_kwargs=trained.policy_kwargs)
+        untrained = TwoStageSAC(
+            "TAMPolicy",
+            env_id,
+            seed=seed,
+            device="cpu",
+            policy_kwargs=trained.policy_kwargs,
+            train_preassign_actor=trained.train_preassign_actor,  # the future critic needs its actor held
+        )
         untrained.set_decoder(get_decoding_strategy(decoder, **config))
         row = {"seed": seed, "trained": evaluation.episode_returns(trained, env_id, seeds),
                "untrained": evaluation.episode_returns(untrained, env_id, seeds)}  # fmt: skip
