@@ -181,6 +181,11 @@ class TwinCritic(nn.Module):
     def size_agnostic(self) -> bool:
         return all(q.size_agnostic for q in self.q_networks)
 
+    @property
+    def learns_future(self) -> bool:
+        """Whether every critic is a :class:`FutureCritic`, whose per-pair values the ``value_top`` decoder reads."""
+        return all(isinstance(q, FutureCritic) for q in self.q_networks)
+
     def forward(
         self, view: ObsView | None, assign: th.Tensor, contexts: list[CriticContext] | None = None
     ) -> tuple[th.Tensor, ...]:

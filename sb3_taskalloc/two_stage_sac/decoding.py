@@ -23,7 +23,6 @@ import numpy as np
 import torch as th
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
-from sb3_taskalloc.common.policies import FutureCritic
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search, exact_covers, sampled_search, select_search
@@ -249,7 +248,7 @@ def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
     to the future critics' value (:class:`~sb3_taskalloc.common.policies.FutureCritic`), 0 on invalid pairs. Each F^k
     is linear in a, so g is each critic's exact per-pair value (of the critic that is lower with every entity free)."""
     critic = policy.critic
-    if critic is None or not all(isinstance(q, FutureCritic) for q in critic.q_networks):
+    if critic is None or not critic.learns_future:
         raise ValueError("the value_top decoder needs the future critic: train with TAMPolicy(mixer='future')")
     with th.inference_mode(False), th.enable_grad():
         state = ObsView(*(x.clone() for x in view))  # decisions run in inference mode; autograd needs plain tensors

@@ -45,10 +45,8 @@ DECODER_ROWS: tuple[tuple[str, dict[str, Any], str], ...] = (
 
 def decoder_rows(model: Any) -> list[tuple[str, dict[str, Any], str]]:
     """The rows of :data:`DECODER_ROWS` that ``model`` can decode by: ``value_top`` needs the future critic."""
-    from sb3_taskalloc.common.policies import FutureCritic
-
     critic = model.policy.critic
-    future = critic is not None and all(isinstance(q, FutureCritic) for q in critic.q_networks)
+    future = critic is not None and critic.learns_future
     return [row for row in DECODER_ROWS if future or row[0] != "value_top"]
 
 
