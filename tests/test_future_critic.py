@@ -203,11 +203,19 @@ def test_the_value_aware_decoder_maximises_profit_plus_future_value(future_model
         assert float(found[b]) == pytest.approx(brute_force_best(view, b, entities, adjusted[b].numpy()), abs=1e-3)
         checked += 1
     assert checked >= 3
-    zero = lambda _, v: th.zeros_like(v.pair_cost)  # noqa: E731
+    rounds: list[ObsView] = []
+    visited: list[tuple[ObsView, th.Tensor]] = []
+
+    def zero(_: object, v: ObsView) -> th.Tensor:
+        rounds.append(v)
+        return th.zeros_like(v.pair_cost)
+
     with th.no_grad(), patch("sb3_taskalloc.two_stage_sac.decoding.future_pair_values", zero):
-        no_future = decide_preassigned(policy, view, get_decoding_strategy("value_top", top=2))
+        no_future = decide_preassigned(policy, view, get_decoding_strategy("value_top", top=2), visited)
         exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
     assert th.equal(no_future.env_action, exact.env_action)
+    # F's per-pair values are computed once per round, for the round's pre-assignment and teams alike
+    assert len(rounds) == len(visited) >= 1
     paper = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"hidden_dim": 16}, device="cpu")
     with pytest.raises(ValueError, match="mixer='future'"):
         paper.predict(states[0], deterministic=True, decoder="value_top")

@@ -12,7 +12,7 @@ Stage 2 (select): :class:`Selector` (the pointer actor) and :class:`SelectCritic
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Generic, NamedTuple, TypeVar
 
 import torch as th
 from torch import nn
@@ -67,9 +67,29 @@ class GlobalContext(NamedTuple):
 
 
 CriticContext = AMIXContext | GlobalContext
+ContextT = TypeVar("ContextT", AMIXContext, GlobalContext)
 
 
-class AMIXCritic(nn.Module):
+class MixingCritic(nn.Module, Generic[ContextT]):
+    """What the stage-1 critics share: Q(s, c) split into :meth:`context` (everything that does not depend on the
+    assignment, computed once) and :meth:`mix` (the value of one assignment), read at the candidate sets of a decision."""
+
+    def context(self, view: ObsView) -> ContextT:
+        raise NotImplementedError
+
+    def mix(self, ctx: ContextT, assign: th.Tensor) -> th.Tensor:
+        """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
+        raise NotImplementedError
+
+    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
+        return self.mix(self.context(view), assign)
+
+    def decision_value(self, ctx: ContextT, candidates: th.Tensor, env_action: th.Tensor) -> th.Tensor:
+        """(B,) Q(s, c) of the decisions whose candidate sets are ``candidates`` (B, M, N)."""
+        return self.mix(ctx, candidates.transpose(1, 2).float())
+
+
+class AMIXCritic(MixingCritic[AMIXContext]):
     """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) (+ V_team(s, c)) with per-entity scores Q_i(s, j) = o_i·q_j (+ pair term).
 
     :param scorer: per-entity Q scorer (TAM or flat)
@@ -95,13 +115,6 @@ class AMIXCritic(nn.Module):
         """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
         q = self.mixer.mix((ctx.scores * assign).sum(-1), ctx.mix)
         return q if self.team is None else q + self.team(ctx.view, assign)
-
-    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
-        return self.mix(self.context(view), assign)
-
-    def decision_value(self, ctx: AMIXContext, candidates: th.Tensor, env_action: th.Tensor) -> th.Tensor:
-        """(B,) Q_tot(s, c) of the decisions whose candidate sets are ``candidates`` (B, M, N)."""
-        return self.mix(ctx, candidates.transpose(1, 2).float())
 
 
 class FutureCritic(AMIXCritic):
@@ -136,7 +149,7 @@ def executed_profit(view: ObsView, env_action: th.Tensor) -> th.Tensor:
     return (served * view.reward).sum(-1) - (a * view.pair_cost).sum((1, 2))
 
 
-class GlobalCritic(nn.Module):
+class GlobalCritic(MixingCritic[GlobalContext]):
     """The "W/o AMIX" critic: one MLP over the flattened state and the (one-hot or expected) assignment.
 
     :param mixer: the global MLP
@@ -154,13 +167,6 @@ class GlobalCritic(nn.Module):
     def mix(self, ctx: GlobalContext, assign: th.Tensor) -> th.Tensor:
         """:param assign: (B, N, M) one-hot pre-assignment or policy probabilities; :return: (B,)"""
         return self.mixer(assign, ctx.view)
-
-    def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
-        return self.mix(self.context(view), assign)
-
-    def decision_value(self, ctx: GlobalContext, candidates: th.Tensor, env_action: th.Tensor) -> th.Tensor:
-        """(B,) Q(s, c) of the decisions whose candidate sets are ``candidates`` (B, M, N)."""
-        return self.mix(ctx, candidates.transpose(1, 2).float())
 
 
 class TwinCritic(nn.Module):

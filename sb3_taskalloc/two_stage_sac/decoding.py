@@ -227,15 +227,23 @@ class ValueTopDecoder(ExactTopDecoder):
 
     def __init__(self, top: int = 2, seed: int = 0) -> None:
         super().__init__(top, seed)
+        self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
+
+    def adjusted(self, policy: TAMPolicy, view: ObsView) -> ObsView:
+        """:func:`value_aware_view` of ``view``, computed once per round: a round's teams read the view its
+        pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves."""
+        if self._adjusted is None or self._adjusted[0] is not policy or self._adjusted[1] is not view:
+            self._adjusted = (policy, view, value_aware_view(policy, view))
+        return self._adjusted[2]
 
     def preassign(
         self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
     ) -> tuple[th.Tensor, th.Tensor | None]:
-        return super().preassign(policy, value_aware_view(policy, view), dist, first_round)
+        return super().preassign(policy, self.adjusted(policy, view), dist, first_round)
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         head = policy.selector.head
-        adjusted = value_aware_view(policy, view)
+        adjusted = self.adjusted(policy, view)
         base = decode_round(head, view, task_of, deterministic=True)  # the pointer on the costs it was trained on
         members = (base.rank >= 0).float()  # (B, M, N)
         p0 = base.kept() * (view.reward - (members * adjusted.pair_cost.transpose(1, 2)).sum(-1))
