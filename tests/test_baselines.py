@@ -240,6 +240,53 @@ def test_max_profit_team_hands_a_long_search_to_highs(monkeypatch):
     assert np.flatnonzero(team).tolist() == [0, 1, 2]  # the three cheapest cover the demand of 3
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_task_by_task_cover_is_as_profitable_as_the_milp(seed):
+    """Where entities may serve either of two tasks, the tasks' own best teams share entities, and the branch and bound
+    over those finds a cover as profitable as HiGHS's optimum of the joint MILP: each entity serves one task, each
+    served task is covered. A search cut at one node hands the row to HiGHS (None)."""
+    from sb3_taskalloc.baselines.milp import max_profit_cover, max_profit_team
+    from sb3_taskalloc.two_stage_sac import search
+
+    rng = np.random.default_rng(seed)
+    shared = 0
+    for _ in range(12):
+        n, m, k = int(rng.integers(4, 13)), int(rng.integers(2, 5)), int(rng.integers(1, 3))
+        supply, demand = rng.integers(0, 5, (n, k)).astype(float), rng.integers(2, 12, (m, k)).astype(float)
+        reward, cost = rng.uniform(1.0, 8.0, m), rng.uniform(0.1, 2.0, (n, m))
+        pairs = np.zeros((n, m), bool)
+        for i in range(n):  # each entity may serve two tasks, as under exact_top with top = 2
+            pairs[i, rng.choice(m, 2, replace=False)] = True
+        own = [np.flatnonzero(pairs[:, j])[max_profit_team(supply[pairs[:, j]], demand[j], reward[j], cost[pairs[:, j], j])]
+               for j in range(m)]  # fmt: skip
+        shared += len(np.concatenate(own)) > len(np.unique(np.concatenate(own)))
+        served = search.task_by_task_cover(supply, demand, reward, cost, pairs)
+        assert served is not None
+        x, y, res = max_profit_cover(supply, demand, reward, cost, pairs, time_limit=60.0)
+        assert res.status == 0
+        profit = 0.0
+        for j in np.unique(served[served >= 0]):
+            team = served == j
+            assert pairs[team, j].all() and (np.minimum(supply[team], demand[j]).sum(0) >= demand[j] - 1e-6).all()
+            profit += reward[j] - cost[team, j].sum()
+        assert profit == pytest.approx(reward @ y - (cost * x).sum(), abs=1e-6)
+    assert shared >= 2  # the search branched, not only read the tasks' own teams
+
+
+def test_task_by_task_cover_branches_on_a_shared_entity(monkeypatch):
+    """Two tasks both want the cheap entity 0: the cover gives it to the task whose next-best team costs more, and a
+    search cut before it settles the conflict hands the row to HiGHS."""
+    from sb3_taskalloc.two_stage_sac import search
+
+    supply, demand, reward = np.full((3, 1), 2.0), np.full((2, 1), 2.0), np.array([10.0, 10.0])
+    cost = np.array([[0.1, 0.1], [1.0, 5.0], [5.0, 0.5]])  # the next best: entity 1 for task 0 (1.0), 2 for 1 (0.5)
+    pairs = np.ones((3, 2), bool)
+    assert search.task_by_task_cover(supply, demand, reward, cost, pairs).tolist() == [0, -1, 1]
+    monkeypatch.setattr(search, "SHARED_NODE_LIMIT", 1)
+    assert search.task_by_task_cover(supply, demand, reward, cost, pairs) is None
+    assert search.task_by_task_cover(supply, demand, reward, cost, np.eye(3, 2, dtype=bool)).tolist() == [0, 1, -1]
+
+
 def test_highs_stdout_is_silenced_only_during_the_solve(capfd):
     # HiGHS writes its stray MIP message to descriptor 1 from C, as os.write does here.
     from sb3_taskalloc.baselines.milp import _highs_stdout_silenced

@@ -377,12 +377,13 @@ def test_exact_top_pre_assigns_by_the_exact_cover_of_the_policys_top_tasks():
 
 def test_exact_searches_stop_each_solve_at_the_node_limit(monkeypatch):
     """The decision-time exact searches bound each HiGHS solve by its node limit (work, the same on any machine), with
-    the time limit only as a safety net; a caller's own limits reach the solver."""
+    the time limit only as a safety net; a caller's own limits reach the solver (every row solved by HiGHS here)."""
     from sb3_taskalloc.baselines import milp
     from sb3_taskalloc.two_stage_sac import search
 
     solve, limits = milp.max_profit_cover, []
     monkeypatch.setattr(milp, "max_profit_cover", lambda *a, **k: limits.append(k) or solve(*a, **k))
+    monkeypatch.setattr(search, "SHARED_NODE_LIMIT", 0)  # every row to HiGHS, not task by task first
     env = gym.make("TaskAlloc/RBF-v0")
     policy = make_policy(env, "exact_top", {"top": 2}, rounds=2)
     view = episode_view(env, make_policy(env))

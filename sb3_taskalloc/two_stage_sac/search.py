@@ -5,8 +5,10 @@ decoding strategies (:mod:`.decoding`) use them at decision time, the select sta
 
 from __future__ import annotations
 
+import heapq
 from typing import NamedTuple
 
+import numpy as np
 import torch as th
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
@@ -80,6 +82,67 @@ def select_search(
 # stop for the exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
 EXACT_NODE_LIMIT = 1000
 EXACT_TIME_LIMIT = 30.0
+# Nodes of :func:`task_by_task_cover`'s search over shared entities before a batch row goes to one HiGHS solve: on
+# value_top's first-round covers of RBF most rows finish within a few nodes, and the rows that branch longer are the
+# ones where HiGHS is the faster (docs/benchmarks.md, "Where `exact_top` and `value_top` spend an RBF decision").
+SHARED_NODE_LIMIT = 16
+
+
+def task_by_task_cover(
+    supply: np.ndarray,
+    demand: np.ndarray,
+    reward: np.ndarray,
+    cost: np.ndarray,
+    pairs: np.ndarray,
+    node_limit: int = EXACT_NODE_LIMIT,
+    time_limit: float = EXACT_TIME_LIMIT,
+) -> np.ndarray | None:
+    """(n,) the task each entity serves in the exact most profitable cover of the allowed ``pairs`` (n, m) (−1: none),
+    task by task: each task's most profitable team among its allowed entities
+    (:func:`~sb3_taskalloc.baselines.milp.max_profit_team`), and where two tasks' teams share an entity, best-first
+    branch and bound on it: one branch forbids it to the one task, the other to the other, which between them keep
+    every cover (an entity serves one task at most). A node's bound is the sum of its tasks' team profits, each team
+    chosen as if the others did not exist, so the first node whose teams are disjoint is an optimal cover. Where each
+    entity may serve one task only (the candidates of a pre-assignment) the root's teams are disjoint.
+
+    :param node_limit: HiGHS node limit of a task whose own branch and bound runs long (:func:`max_profit_team`)
+    :param time_limit: HiGHS time limit of such a task (seconds), a safety net
+    :return: the tasks served, or None where the search reached :data:`SHARED_NODE_LIMIT` nodes first
+    """
+    from sb3_taskalloc.baselines.milp import max_profit_team
+
+    solved: dict[tuple[int, frozenset[int]], tuple[float, np.ndarray]] = {}
+
+    def team(j: int, forbidden: frozenset[int]) -> tuple[float, np.ndarray]:
+        """task j's most profitable team (its profit, its entities) without the entities ``forbidden`` to it"""
+        if (j, forbidden) not in solved:
+            ents = np.flatnonzero(pairs[:, j])
+            ents = ents[~np.isin(ents, list(forbidden))] if forbidden else ents
+            chosen = ents[max_profit_team(supply[ents], demand[j], reward[j], cost[ents, j], time_limit, node_limit)]
+            solved[j, forbidden] = (float(reward[j] - cost[chosen, j].sum()) if len(chosen) else 0.0, chosen)
+        return solved[j, forbidden]
+
+    tasks = np.flatnonzero(pairs.any(0)).tolist()
+    root = {j: frozenset[int]() for j in tasks}
+    # A node: minus its bound, its order of creation (ties go to the older node: the search is deterministic), what it
+    # forbids to each task, and its teams.
+    queue = [(-sum(team(j, f)[0] for j, f in root.items()), 0, root)]
+    for created in range(1, 2 * SHARED_NODE_LIMIT, 2):
+        _, _, forbids = heapq.heappop(queue)
+        served = np.full(len(supply), -1, dtype=np.int64)
+        for j, f in forbids.items():
+            members = team(j, f)[1]
+            shared = members[served[members] >= 0]
+            if len(shared):  # branch on the first entity two teams share
+                e, other = int(shared[0]), int(served[shared[0]])
+                for order, k in enumerate((other, j)):
+                    child = {**forbids, k: forbids[k] | {e}}
+                    heapq.heappush(queue, (-sum(team(t, g)[0] for t, g in child.items()), created + order, child))
+                break
+            served[members] = j
+        else:
+            return served
+    return None
 
 
 def exact_covers(
@@ -90,37 +153,35 @@ def exact_covers(
     by_task: bool = True,
 ) -> th.Tensor:
     """(B, N) the task each entity serves in the exact most profitable cover of the ``allowed`` pairs (−1: none):
-    :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone, one
-    HiGHS solve per batch row on the CPU. Where each entity may serve one task at most (the candidates of a
-    pre-assignment) the problem separates by task, and each task's team is
-    :func:`~sb3_taskalloc.baselines.milp.max_profit_team`'s (branch and bound, HiGHS where it runs long).
+    :func:`~sb3_taskalloc.baselines.milp.max_profit_cover`, the per-step MILP's formulation, on those pairs alone.
+    Each batch row is solved task by task (:func:`task_by_task_cover`: each task's exact team by branch and bound,
+    then branch and bound on the entities two teams share), or by one HiGHS solve on the CPU where that search runs past
+    :data:`SHARED_NODE_LIMIT` nodes. Where each entity may serve one task at most (the candidates of a pre-assignment)
+    the problem separates by task and no row branches.
 
     :param allowed: (B, N, M) bool pairs that may be assigned
     :param node_limit: HiGHS node limit per solve (a batch row, or a task whose branch and bound ran long); the best
         cover found is used when it is reached (a deterministic stop: the cover is the same on any machine)
     :param time_limit: HiGHS time limit per solve (seconds), a safety net: where it binds, the cover depends on the
         machine's speed and load
-    :param by_task: solve task by task where the pairs separate (False: one HiGHS solve per batch row always, the
-        reference the benchmark ``python -m sb3_taskalloc.bench labels`` times it against)
+    :param by_task: solve task by task first (False: one HiGHS solve per batch row always, the reference the benchmark
+        ``python -m sb3_taskalloc.bench labels`` times it against)
     """
-    import numpy as np
-
-    from sb3_taskalloc.baselines.milp import max_profit_cover, max_profit_team
+    from sb3_taskalloc.baselines.milp import max_profit_cover
 
     tensors = (view.supply, view.demand, view.reward, view.pair_cost)
     supply, demand, reward, cost = (x.detach().double().cpu().numpy() for x in tensors)
     pairs = allowed.cpu().numpy()
     members = np.full(pairs.shape[:2], -1, dtype=np.int64)
-    if by_task and (pairs.sum(-1) <= 1).all():
-        for b, j in zip(*np.nonzero(pairs.any(1)), strict=True):
-            ents = np.flatnonzero(pairs[b, :, j])
-            team = max_profit_team(supply[b, ents], demand[b, j], reward[b, j], cost[b, ents, j], time_limit, node_limit)
-            members[b, ents[team]] = j
-        return th.as_tensor(members, device=allowed.device)
     for b in range(pairs.shape[0]):
         ents, tasks = np.flatnonzero(pairs[b].any(1)), np.flatnonzero(pairs[b].any(0))
         if len(ents) == 0:
             continue
+        if by_task:
+            found = task_by_task_cover(supply[b], demand[b], reward[b], cost[b], pairs[b], node_limit, time_limit)
+            if found is not None:
+                members[b] = found
+                continue
         x, _, _ = max_profit_cover(
             supply[b, ents],
             demand[b, tasks],
