@@ -82,10 +82,10 @@ def select_search(
 # stop for the exact searches"), and a time limit only as a safety net for a solve that takes pathologically long.
 EXACT_NODE_LIMIT = 1000
 EXACT_TIME_LIMIT = 30.0
-# Nodes of :func:`task_by_task_cover`'s search over shared entities before a batch row goes to one HiGHS solve: on
-# value_top's first-round covers of RBF most rows finish within a few nodes, and the rows that branch longer are the
-# ones where HiGHS is the faster (docs/benchmarks.md, "Where `exact_top` and `value_top` spend an RBF decision").
-SHARED_NODE_LIMIT = 16
+# Nodes of :func:`task_by_task_cover`'s search over shared entities before a batch row goes to one HiGHS solve: on 54 of
+# value_top's first-round covers of RBF (top 2) 32 finish within 8 nodes, and a larger limit costs the rows that still
+# go to HiGHS more than it saves (docs/benchmarks.md, "Where `exact_top` and `value_top` spend an RBF decision").
+SHARED_NODE_LIMIT = 8
 
 
 def task_by_task_cover(
