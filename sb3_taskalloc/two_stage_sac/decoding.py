@@ -231,7 +231,8 @@ class ValueTopDecoder(ExactTopDecoder):
 
     def adjusted(self, policy: TAMPolicy, view: ObsView) -> ObsView:
         """:func:`value_aware_view` of ``view``, computed once per round: a round's teams read the view its
-        pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves."""
+        pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves. The
+        teams release it, so the decoder holds no policy or state between rounds."""
         if self._adjusted is None or self._adjusted[0] is not policy or self._adjusted[1] is not view:
             self._adjusted = (policy, view, value_aware_view(policy, view))
         return self._adjusted[2]
@@ -244,6 +245,7 @@ class ValueTopDecoder(ExactTopDecoder):
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         head = policy.selector.head
         adjusted = self.adjusted(policy, view)
+        self._adjusted = None
         base = decode_round(head, view, task_of, deterministic=True)  # the pointer on the costs it was trained on
         members = (base.rank >= 0).float()  # (B, M, N)
         p0 = base.kept() * (view.reward - (members * adjusted.pair_cost.transpose(1, 2)).sum(-1))

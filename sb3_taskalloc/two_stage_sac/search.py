@@ -84,7 +84,7 @@ EXACT_NODE_LIMIT = 1000
 EXACT_TIME_LIMIT = 30.0
 # Nodes of :func:`task_by_task_cover`'s search over shared entities before a batch row goes to one HiGHS solve: on 54 of
 # value_top's first-round covers of RBF (top 2) 32 finish within 8 nodes, and a larger limit costs the rows that still
-# go to HiGHS more than it saves (docs/benchmarks.md, "Where `exact_top` and `value_top` spend an RBF decision").
+# go to HiGHS more than it saves (docs/benchmarks.md, "The task-by-task cover search").
 SHARED_NODE_LIMIT = 8
 
 
@@ -124,8 +124,8 @@ def task_by_task_cover(
 
     tasks = np.flatnonzero(pairs.any(0)).tolist()
     root = {j: frozenset[int]() for j in tasks}
-    # A node: minus its bound, its order of creation (ties go to the older node: the search is deterministic), what it
-    # forbids to each task, and its teams.
+    # A node: minus its bound, its order of creation (ties go to the older node: the search is deterministic), and what
+    # it forbids to each task (its teams are read from ``solved``).
     queue = [(-sum(team(j, f)[0] for j, f in root.items()), 0, root)]
     for created in range(1, 2 * SHARED_NODE_LIMIT, 2):
         _, _, forbids = heapq.heappop(queue)
