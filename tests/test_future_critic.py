@@ -18,7 +18,14 @@ from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.policies import FutureCritic, executed_assignment, executed_profit
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.experiments.bench.policy import decoder_rows
-from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, decide_preassigned, future_pair_values, get_decoding_strategy
+from sb3_taskalloc.two_stage_sac.decoding import (
+    ARGMAX,
+    decide_preassigned,
+    future_pair_values,
+    get_decoding_strategy,
+    value_aware_view,
+)
+from sb3_taskalloc.two_stage_sac.search import cover_search, exact_covers
 from sb3_taskalloc.two_stage_sac.updates import FutureCriticUpdate
 
 
@@ -172,18 +179,47 @@ def brute_force_best(view: ObsView, b: int, entities: np.ndarray, cost: np.ndarr
     return best
 
 
+def visited_states(model: TwoStageSAC, steps: int = 12) -> tuple[list[dict[str, np.ndarray]], ObsView]:
+    """The states of ``steps`` deterministic MT steps from reset seed 5, and their batch's view."""
+    env = gym.make("TaskAlloc/MT-v0")
+    obs, _ = env.reset(seed=5)
+    states = []
+    for _ in range(steps):
+        states.append(obs)
+        obs = env.step(model.predict(obs, deterministic=True)[0])[0]
+    policy = model.policy
+    return states, policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in states]) for k in states[0]})[0])
+
+
+@pytest.mark.parametrize("name", ["exact_top", "value_top"])
+def test_an_exact_top_round_keeps_its_covers_teams(future_model: TwoStageSAC, name: str) -> None:
+    """The exact cover of a round's candidate pairs is the candidates themselves (each team of the round's cover is the
+    most profitable of its own members), which is why its teams do not solve it again; and the teams equal those of
+    the search that does."""
+    policy = future_model.policy
+    _, view = visited_states(future_model)
+    decoder = get_decoding_strategy(name, top=2)
+    visited: list[tuple[ObsView, th.Tensor]] = []
+    with th.no_grad():
+        decide_preassigned(policy, view, decoder, visited)
+        for round_view, task_of in visited:
+            scored = value_aware_view(policy, round_view) if name == "value_top" else round_view
+            M = round_view.task_mask.shape[1]
+            allowed = task_of.unsqueeze(-1) == th.arange(M)
+            assert th.equal(exact_covers(scored, allowed), task_of)
+            rank, kept = decoder.teams(policy, round_view, task_of)
+            if name == "exact_top":
+                solved = cover_search(policy.selector.head, round_view, task_of)
+                assert th.equal(rank, solved.rank) and th.equal(kept, solved.profit > 0)
+    assert sum(int((c >= 0).sum()) for _, c in visited) >= 10
+
+
 def test_the_value_aware_decoder_maximises_profit_plus_future_value(future_model: TwoStageSAC) -> None:
     """With every pair allowed (``top`` = M) the value-aware decoder's first round is worth, by r − (c − g)⁺, the best
     of all assignments enumerated; with g = 0 it decides as ``exact_top`` of the same ``top``; the policy of another
     critic is refused."""
     policy = future_model.policy
-    env = gym.make("TaskAlloc/MT-v0")
-    obs, _ = env.reset(seed=5)
-    states = []
-    for _ in range(12):
-        states.append(obs)
-        obs = env.step(future_model.predict(obs, deterministic=True)[0])[0]
-    view = policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in states]) for k in states[0]})[0])
+    states, view = visited_states(future_model)
     # Five free trucks per state keep the enumeration small: (M + 1)^5 assignments.
     view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 5))
     M = view.reward.shape[1]

@@ -212,6 +212,13 @@ class ExactTopDecoder(ExactCoversDecoder):
         tasks = th.arange(M, device=argmax.device).view(1, M, 1)
         return covers, (argmax.unsqueeze(1) == tasks).any(-1)
 
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so the
+        # exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
+        # pointer's argmax among them (the exact cover's decode is that same decode).
+        found = select_search(policy.selector.head, view, task_of, 1, self.temperature)
+        return found.rank, found.profit > 0
+
 
 @register_decoder
 class ValueTopDecoder(ExactTopDecoder):
@@ -249,7 +256,8 @@ class ValueTopDecoder(ExactTopDecoder):
         base = decode_round(head, view, task_of, deterministic=True)  # the pointer on the costs it was trained on
         members = (base.rank >= 0).float()  # (B, M, N)
         p0 = base.kept() * (view.reward - (members * adjusted.pair_cost.transpose(1, 2)).sum(-1))
-        found = cover_search(head, adjusted, task_of, against=SelectSearchResult(base.rank, p0, p0))
+        # The candidates are the exact cover of the adjusted view (see ExactTopDecoder.teams), not solved again.
+        found = cover_search(head, adjusted, task_of, against=SelectSearchResult(base.rank, p0, p0), members=task_of)
         return found.rank, found.profit > 0
 
 

@@ -203,6 +203,7 @@ def cover_search(
     node_limit: int = EXACT_NODE_LIMIT,
     time_limit: float = EXACT_TIME_LIMIT,
     against: SelectSearchResult | None = None,
+    members: th.Tensor | None = None,
 ) -> SelectSearchResult:
     """Per task, the better of the teams ``against`` (default: the deterministic decode) and the exact most profitable
     cover of its candidates (:func:`exact_covers` on the candidate pairs alone), by the task's profit
@@ -216,14 +217,16 @@ def cover_search(
     :param time_limit: HiGHS time limit per batch row (seconds), a safety net (:func:`exact_covers`)
     :param against: an earlier search's teams on the same candidates (:func:`select_search`), so the deterministic
         decode is not decoded twice
+    :param members: (B, N) the exact cover of the candidate pairs where the caller has it already (None: solved here)
     """
     if against is None:
         base = decode_round(head, view, task_of, deterministic=True)
         p0 = task_profit(base)
         against = SelectSearchResult(base.rank, p0, p0)
-    M = view.task_mask.shape[1]
-    allowed = task_of.unsqueeze(-1) == th.arange(M, device=task_of.device)
-    cover = decode_round(head, view, exact_covers(view, allowed, node_limit, time_limit), deterministic=True)
+    if members is None:
+        allowed = task_of.unsqueeze(-1) == th.arange(view.task_mask.shape[1], device=task_of.device)
+        members = exact_covers(view, allowed, node_limit, time_limit)
+    cover = decode_round(head, view, members, deterministic=True)
     p1 = task_profit(cover)
     better = p1 > against.profit
     return SelectSearchResult(
