@@ -215,15 +215,19 @@ def lagrangian_bound(
     line search along each λ_k in turn. :return: the bound and λ"""
     u = np.minimum(useful, r)
     lam = start.copy()
-    for k in range(len(r)):
-        pos = u[:, k] > 0
-        if not pos.any():
-            continue
+    by_resource = u.T.copy()  # contiguous rows: this runs at every node of a team search, on a few dozen groups
+    for k, uk in enumerate(by_resource):
+        pos = uk > 0
         # Along λ_k the bound's slope is r_k − Σ n_h u_hk over the groups past their breakpoint, where c_h − λ·u_h turns
         # negative: its maximum is the first breakpoint at which those groups supply r_k.
-        brk = (cost - u @ lam + u[:, k] * lam[k])[pos] / u[pos, k]
-        srt = np.argsort(brk)
-        j = int(np.searchsorted(np.cumsum((counts[pos] * u[pos, k])[srt]), r[k]))
+        if pos.all():  # the common case, spared the masked copies
+            brk, supplied = (cost - u @ lam + uk * lam[k]) / uk, counts * uk
+        elif pos.any():
+            brk, supplied = (cost - u @ lam + uk * lam[k])[pos] / uk[pos], counts[pos] * uk[pos]
+        else:
+            continue
+        srt = brk.argsort()
+        j = int(supplied[srt].cumsum().searchsorted(r[k]))
         if j < len(srt):  # else the groups cannot supply r_k (no cover exists; the callers cut such a node)
             lam[k] = max(float(brk[srt[j]]), 0.0)
     return float(lam @ r + (np.minimum(0.0, cost - u @ lam) * counts).sum()), lam
