@@ -185,8 +185,9 @@ class ExactCoversDecoder(TeamSearchDecoder):
 class ExactTopDecoder(ExactCoversDecoder):
     """The pre-assignment itself from the solver, pruned by the policy: each round solves the per-step MILP's
     formulation on the pairs that join each free entity to one of its ``top`` most probable tasks (implementation
-    detail 22), and its teams are weighed as in ``exact_covers``. Entities outside the cover stay free for the next
-    round; the round counts as tried the tasks it covers and those of the argmax's candidate sets."""
+    detail 22); its teams are the cover's, each decoded by the pointer among its members. Entities outside the cover
+    stay free for the next round; the round counts as tried the tasks it covers and those of the argmax's candidate
+    sets."""
 
     name = "exact_top"
 
@@ -226,7 +227,8 @@ class ValueTopDecoder(ExactTopDecoder):
     lowered by its learned future value g_ij = ∂F/∂a_ij (:func:`future_pair_values`; F is linear in the assignment),
     so each round's exact cover maximises this step's profit plus what the assignment leaves for later, as NeurADP's
     ILP adds per-vehicle values to its scores. Teams are weighed by the same objective: the pointer's argmax team
-    against the exact cover of its candidates. With F = 0 it is ``exact_top`` of the same ``top`` (implementation
+    against its decode on the lowered costs, among the cover's members. With F = 0 it is ``exact_top`` of the same
+    ``top`` (implementation
     detail 25).
     """
 
