@@ -238,11 +238,11 @@ class ValueTopDecoder(ExactTopDecoder):
         super().__init__(top, seed)
         check_finite({"future_weight": future_weight})
         self.future_weight = float(future_weight)
+        self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
 
     @property
     def config(self) -> dict[str, Any]:
         return {"top": self.top, "future_weight": self.future_weight, "seed": self.seed}
-        self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
 
     def adjusted(self, policy: TAMPolicy, view: ObsView) -> ObsView:
         """:func:`value_aware_view` of ``view``, computed once per round: a round's teams read the view its
