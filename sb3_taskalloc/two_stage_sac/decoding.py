@@ -236,7 +236,7 @@ class ValueTopDecoder(ExactTopDecoder):
 
     def __init__(self, top: int = 2, future_weight: float = 1.0, seed: int = 0) -> None:
         super().__init__(top, seed)
-        check_finite({"future_weight": future_weight})
+        check_finite({"future_weight": future_weight}, inclusive=True)  # 0: no values, exact_top itself
         self.future_weight = float(future_weight)
         self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
 
