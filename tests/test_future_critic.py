@@ -250,11 +250,6 @@ def test_the_value_aware_decoder_maximises_profit_plus_future_value(future_model
         no_future = decide_preassigned(policy, view, get_decoding_strategy("value_top", top=2), visited)
         exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
     assert th.equal(no_future.env_action, exact.env_action)
-    with th.no_grad():  # the values weighted by 0 are no values
-        unweighted = decide_preassigned(policy, view, get_decoding_strategy("value_top", top=2, future_weight=0.0))
-    assert th.equal(unweighted.env_action, exact.env_action)
-    with pytest.raises(ValueError, match="future_weight"):
-        get_decoding_strategy("value_top", future_weight=float("nan"))
     # F's per-pair values are computed once per round, for the round's pre-assignment and teams alike
     assert len(rounds) == len(visited) >= 1
     paper = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"hidden_dim": 16}, device="cpu")

@@ -228,28 +228,21 @@ class ValueTopDecoder(ExactTopDecoder):
     so each round's exact cover maximises this step's profit plus what the assignment leaves for later, as NeurADP's
     ILP adds per-vehicle values to its scores. Teams are weighed by the same objective: the pointer's argmax team
     against its decode on the lowered costs, among the cover's members. With F = 0 it is ``exact_top`` of the same
-    ``top`` (implementation
-    detail 25).
+    ``top`` (implementation detail 25).
     """
 
     name = "value_top"
 
-    def __init__(self, top: int = 2, future_weight: float = 1.0, seed: int = 0) -> None:
+    def __init__(self, top: int = 2, seed: int = 0) -> None:
         super().__init__(top, seed)
-        check_finite({"future_weight": future_weight}, inclusive=True)  # 0: no values, exact_top itself
-        self.future_weight = float(future_weight)
         self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
-
-    @property
-    def config(self) -> dict[str, Any]:
-        return {"top": self.top, "future_weight": self.future_weight, "seed": self.seed}
 
     def adjusted(self, policy: TAMPolicy, view: ObsView) -> ObsView:
         """:func:`value_aware_view` of ``view``, computed once per round: a round's teams read the view its
         pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves. The
         teams release it, so the decoder holds no policy or state between rounds."""
         if self._adjusted is None or self._adjusted[0] is not policy or self._adjusted[1] is not view:
-            self._adjusted = (policy, view, value_aware_view(policy, view, self.future_weight))
+            self._adjusted = (policy, view, value_aware_view(policy, view))
         return self._adjusted[2]
 
     def preassign(
@@ -285,11 +278,11 @@ def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
     return grad.detach() * view.valid
 
 
-def value_aware_view(policy: TAMPolicy, view: ObsView, weight: float = 1.0) -> ObsView:
+def value_aware_view(policy: TAMPolicy, view: ObsView) -> ObsView:
     """``view`` with each valid pair's cost lowered by its future value (:func:`future_pair_values`), at least 0: the
     exact solvers maximise reward − cost, so this makes them maximise P + F (a pair whose future value exceeds its cost
     costs nothing rather than paying, which keeps the team searches' bounds valid)."""
-    return view._replace(pair_cost=(view.pair_cost - weight * future_pair_values(policy, view)).clamp_min(0.0))
+    return view._replace(pair_cost=(view.pair_cost - future_pair_values(policy, view)).clamp_min(0.0))
 
 
 class DecodingMixin:
