@@ -216,7 +216,8 @@ class ExactTopDecoder(ExactCoversDecoder):
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so the
         # exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
-        # pointer's argmax among them (the exact cover's decode is that same decode).
+        # pointer's argmax among them (the exact cover's decode is that same decode). Only a HiGHS row stopped at its
+        # node limit, unproven, may keep a member that a second solve would drop.
         found = select_search(policy.selector.head, view, task_of, 1, self.temperature)
         return found.rank, found.profit > 0
 
