@@ -70,7 +70,7 @@ def check_settings(model: TwoStageSAC) -> None:
     check_counts({"learning_starts": model.learning_starts}, minimum=0)
     given = {name: getattr(model, name) for name in CHOICES}
     check_choices({name: (value, CHOICES[name]) for name, value in given.items()})
-    check_bools({"train_preassign_actor": model.train_preassign_actor})
+    check_bools({"train_preassign_actor": model.train_preassign_actor, "cuda_graph": model.cuda_graph})
     check_finite({"prior_coef": model.prior_coef, "target_entropy_ratio": model.target_entropy_ratio}, inclusive=True)
     for name in ("gamma", "tau"):
         value = getattr(model, name)

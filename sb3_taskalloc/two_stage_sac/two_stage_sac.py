@@ -21,7 +21,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from sb3_taskalloc.common.buffers import TwoStageReplayBuffer, pack_decision
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
 from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model, saved_members
-from sb3_taskalloc.two_stage_sac import dagger, legacy
+from sb3_taskalloc.two_stage_sac import dagger, graph_step, legacy
 from sb3_taskalloc.two_stage_sac import updates as stage
 from sb3_taskalloc.two_stage_sac.decoding import DecodingMixin
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
@@ -71,6 +71,8 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ its initial rule (detail 12)
     :param select_kwargs: the select stage's settings over :data:`~sb3_taskalloc.two_stage_sac.updates.SELECT_DEFAULTS`
     :param target_update_interval: target network update interval (gradient steps)
+    :param cuda_graph: on CUDA, record the gradient step as a CUDA graph once and replay it (implementation detail 26,
+        :mod:`.graph_step`); the eager step elsewhere. Needs a constant learning rate
     :param stats_window_size: episodes in the rollout logging window
     :param tensorboard_log: tensorboard log folder
     :param policy_kwargs: :class:`TAMPolicy` keyword arguments (ablations included)
@@ -117,6 +119,7 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         prior_coef: float = 0.1,
         select_kwargs: dict[str, Any] | None = None,
         target_update_interval: int = 1,
+        cuda_graph: bool = False,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -163,6 +166,7 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         self.prior_coef = prior_coef
         self.select_kwargs = check_select_kwargs(select_kwargs)
         self.target_update_interval = target_update_interval
+        self.cuda_graph = cuda_graph
         if _init_setup_model:
             self._setup_model()
 
@@ -207,6 +211,8 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
         preassign = stage.preassign_update(self)
         if preassign is not None:
             self.updates.insert(0, preassign)
+        graph_step.check_cuda_graph(self)
+        self.gradient_step = graph_step.gradient_step(self)
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -272,11 +278,10 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
 
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[arg-type]
-            obs = self.policy.parse(replay_data.observations)
             # Stage 1, pre-assignment (Algorithm 2), then stage 2, select (Algorithm 3): each update runs target →
-            # critic → actor → temperature (sb3_taskalloc.two_stage_sac.updates).
-            for update in self.updates:
-                update(obs, replay_data, logs)  # type: ignore[arg-type]
+            # critic → actor → temperature (sb3_taskalloc.two_stage_sac.updates), eagerly or replayed from the step's
+            # CUDA graph (graph_step).
+            self.gradient_step(replay_data, logs)  # type: ignore[arg-type]
             # Target networks: Polyak averaging every ``target_update_interval`` gradient steps.
             if gradient_step % self.target_update_interval == 0:
                 for update in self.updates:
@@ -419,7 +424,12 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         aliases = ["actor", "critic", "critic_target", "selector", "select_critic", "select_critic_target"]
-        return [*super()._excluded_save_params(), *aliases, "updates", "zoo_callbacks"]
+        return [*super()._excluded_save_params(), *aliases, "updates", "gradient_step", "zoo_callbacks"]
+
+    def get_parameters(self) -> dict[str, dict]:
+        """SB3's, with the optimizers saved as eager ones (``capturable`` off, which a CUDA graph step sets): Adam
+        refuses it on the CPU, and the saved model loads and trains on any device."""
+        return graph_step.eager_optimizers(super().get_parameters())
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "selector.optimizer", "select_critic.optimizer"]

@@ -108,10 +108,15 @@ class PreAssignUpdate:
     and its temperature α.
 
     :param model: the algorithm, whose networks and settings are read at each step
+    :param padded: the losses laid out with fixed shapes and no host read (the temperature's statistics weighted, not
+        selected), as a CUDA graph records them (:mod:`.graph_step`)
     """
 
-    def __init__(self, model: TwoStageSAC) -> None:
-        self.model = model
+    #: Whether a CUDA graph can record this update (:mod:`.graph_step`).
+    capturable = True
+
+    def __init__(self, model: TwoStageSAC, padded: bool = False) -> None:
+        self.model, self.padded = model, padded
 
     def critic_loss(
         self, obs: ObsView, next_obs: ObsView, data: TwoStageReplayBufferSamples, alpha: th.Tensor
@@ -156,8 +161,8 @@ class PreAssignUpdate:
         m.actor.optimizer.step()
         # Temperature: log α·(H̄ − H̄*) on the mean per-entity entropy (detail 4).
         if m.log_ent_coef is not None and m.ent_coef_optimizer is not None:
-            entropy = losses.preassign_entropy(dist, obs, m.target_entropy_ratio)
-            if entropy.entropy.numel() > 0:
+            entropy = losses.preassign_entropy(dist, obs, m.target_entropy_ratio, weighted=self.padded)
+            if self.padded or entropy.entropy.numel() > 0:  # padded: a batch with no free entity weighs 0
                 ent_loss = losses.ent_coef_loss(m.log_ent_coef, entropy.entropy, entropy.target, entropy.weight)
                 logs["ent_coef_loss"].append(optimizer_step(m.ent_coef_optimizer, ent_loss))
 
@@ -177,7 +182,11 @@ class FutureCriticUpdate(PreAssignUpdate):
     (post-select) assignment and a′ the argmax decision at s′: F is the future of the decisions the model deploys, so
     its target carries no entropy bonus. With the commitment reward r − P(s, a) is what the step settles of earlier
     decisions (a team's decay during travel), 0 on most steps.
+
+    Its target decodes the argmax decision at s′ pick by pick, asking the host when to stop: no CUDA graph records it.
     """
+
+    capturable = False
 
     def critic_loss(
         self, obs: ObsView, next_obs: ObsView, data: TwoStageReplayBufferSamples, alpha: th.Tensor
@@ -230,13 +239,19 @@ class SelectUpdate:
     plus the team-search distillation term (detail 18) when its weight is positive.
 
     :param model: the algorithm, whose networks and settings are read at each step
+    :param padded: every round laid out with N pick steps and the transitions weighted, the team search decoded by the
+        fixed-length loop: the same losses up to rounding, with fixed shapes and no host read, as a CUDA graph records
+        them (:mod:`.graph_step`)
     """
 
-    def __init__(self, model: TwoStageSAC) -> None:
-        self.model = model
+    capturable = True
+
+    def __init__(self, model: TwoStageSAC, padded: bool = False) -> None:
+        self.model, self.padded = model, padded
 
     def __call__(self, obs: ObsView, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
         m, cfg = self.model, self.model.select_kwargs
+        steps = obs.entity.shape[1] if self.padded else None  # N pick steps always suffice
         alpha = temperature(m.log_select_ent_coef, m.select_ent_coef_tensor)
         logs["select_ent_coef"].append(alpha.detach())
         rows = slice(0, cfg["batch_size"])
@@ -257,13 +272,16 @@ class SelectUpdate:
             m.target_entropy_ratio,
             m.policy.selector_prior,
             cfg["prior_coef"],
+            steps,
         )
         if select is None:  # no task picked anything in these rows
             return
         logs["select_critic_loss"].append(optimizer_step(m.select_critic.optimizer, select.critic_loss))
         actor_loss = select.actor_loss
         if cfg["search_coef"] > 0:  # each row costs search_samples decodes of every task
-            found = losses.select_search_loss(m.selector, view, candidates, cfg["search_samples"], cfg["search_temperature"])
+            found = losses.select_search_loss(
+                m.selector, view, candidates, cfg["search_samples"], cfg["search_temperature"], steps
+            )
             logs["select_search_loss"].append(found.loss.detach())
             logs["select_search_improved"].append(found.improved)
             logs["select_search_gain"].append(found.gain)

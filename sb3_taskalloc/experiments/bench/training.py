@@ -16,8 +16,8 @@ if TYPE_CHECKING:
 
 from sb3_taskalloc.experiments.bench.common import bench_devices, median_ms, sync
 
-#: The profiler's names of the host calls that launch a CUDA kernel.
-LAUNCH_EVENTS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx")
+#: The profiler's names of the host calls that launch a CUDA kernel, or a CUDA graph of them (one launch per replay).
+LAUNCH_EVENTS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx", "cudaGraphLaunch")
 
 
 #: ``bench learn`` trains until the policy returns this multiple of its untrained initialisation.

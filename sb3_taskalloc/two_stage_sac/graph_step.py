@@ -1,0 +1,169 @@
+"""TwoStageSAC's gradient step: eager (the reference), or recorded once as a CUDA graph and replayed (``cuda_graph=True``,
+implementation detail 26).
+
+On CUDA an eager step is bound by the host: Python launches each of its thousands of small kernels (about 8,000 at
+RBF's zoo block, for 18 ms of GPU work in 118 ms of wall time). A CUDA graph records the kernels of one step once, both
+stages' losses laid out with fixed shapes (the ``padded`` updates of :mod:`.updates`), their backward passes and the
+optimizers' steps (Adam with ``capturable=True``, its step count on the device), and replays them with one launch on
+each new minibatch, copied into the recorded input tensors. The target networks' Polyak averaging stays outside it:
+``target_update_interval`` may skip it.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+import torch as th
+
+from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
+from sb3_taskalloc.two_stage_sac.updates import Logs, PreAssignUpdate, SelectUpdate
+
+if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
+
+#: Eager steps before the recording: they build the optimizers' state and the CUDA libraries' workspaces, which must
+#: exist before a graph records (PyTorch's "whole-network capture" recipe warms up with three).
+GRAPH_WARMUP = 3
+
+
+class GradientStep:
+    """One gradient step of each update on a sampled minibatch, run eagerly: the reference.
+
+    :param model: the algorithm, whose policy parses the observations
+    :param updates: the stages' updates, in order
+    """
+
+    def __init__(self, model: TwoStageSAC, updates: list[PreAssignUpdate | SelectUpdate]) -> None:
+        self.model, self.updates = model, updates
+
+    def __call__(self, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
+        obs = self.model.policy.parse(data.observations)  # type: ignore[arg-type]
+        for update in self.updates:
+            update(obs, data, logs)  # type: ignore[arg-type]
+
+
+class CUDAGraphStep(GradientStep):
+    """The gradient step recorded as a CUDA graph on the first step after :data:`GRAPH_WARMUP` eager ones (run on a
+    side stream, as the recording will be), then replayed on each minibatch. The padded losses are the eager ones up
+    to rounding (``tests/test_traced.py``); the team search draws its samples from the graph's own offsets of the CUDA
+    random stream, so its teams are not the eager step's.
+
+    :param model: the algorithm; its updates must all be recordable (:attr:`.PreAssignUpdate.capturable`)
+    """
+
+    def __init__(self, model: TwoStageSAC) -> None:
+        super().__init__(model, [type(update)(model, padded=True) for update in model.updates])
+        self.calls = 0
+        self.graph: th.cuda.CUDAGraph | None = None
+        self.inputs: TwoStageReplayBufferSamples | None = None
+        self.outputs: Logs = {}
+
+    def optimizers(self) -> Iterator[th.optim.Optimizer]:
+        m = self.model
+        for optimizer in (
+            m.selector.optimizer,
+            m.select_critic.optimizer,
+            None if m.actor is None else m.actor.optimizer,
+            None if m.critic is None else m.critic.optimizer,
+            m.ent_coef_optimizer,
+            m.select_ent_coef_optimizer,
+        ):
+            if optimizer is not None:
+                yield optimizer
+
+    def make_capturable(self) -> None:
+        """Adam with its step count on the device (``capturable``), which the graph increments: set here rather than
+        at construction, since ``load`` restores the saved (eager) optimizer settings after it."""
+        for optimizer in self.optimizers():
+            for group in optimizer.param_groups:
+                group["capturable"] = True
+                for param in group["params"]:
+                    state = optimizer.state.get(param, {})
+                    if "step" in state:
+                        state["step"] = state["step"].to(param.device, th.float32)
+
+    def __call__(self, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
+        if self.graph is None and self.calls < GRAPH_WARMUP:
+            if self.calls == 0:
+                self.make_capturable()
+            self.calls += 1
+            side = th.cuda.Stream()
+            side.wait_stream(th.cuda.current_stream())
+            with th.cuda.stream(side):
+                super().__call__(data, logs)
+            th.cuda.current_stream().wait_stream(side)
+            return
+        if self.graph is None:
+            self.record(data)
+        else:
+            copy_into(self.inputs, data)  # type: ignore[arg-type]
+        assert self.graph is not None
+        self.graph.replay()
+        for key, values in self.outputs.items():
+            logs[key].extend(value.clone() for value in values)  # the graph overwrites its outputs at the next replay
+
+    def record(self, data: TwoStageReplayBufferSamples) -> None:
+        """Record one step on ``data``, whose tensors become the graph's inputs (recording runs nothing)."""
+        for optimizer in self.optimizers():
+            optimizer.zero_grad(set_to_none=True)  # the graph's backward passes allocate the gradients in its pool
+        outputs: Logs = defaultdict(list)
+        self.inputs, self.graph = data, th.cuda.CUDAGraph()
+        with th.cuda.graph(self.graph):
+            super().__call__(data, outputs)
+        self.outputs = dict(outputs)
+
+
+def _tensors(data: TwoStageReplayBufferSamples) -> Iterator[th.Tensor]:
+    for field in data:
+        if isinstance(field, dict):
+            yield from field.values()
+        elif field is not None:
+            yield field
+
+
+def copy_into(inputs: TwoStageReplayBufferSamples, data: TwoStageReplayBufferSamples) -> None:
+    """Copy a new minibatch into the recorded one's tensors (same keys and shapes: the same batch size)."""
+    for old, new in zip(_tensors(inputs), _tensors(data), strict=True):
+        if old.shape != new.shape:
+            raise ValueError(
+                f"the CUDA graph of the gradient step was recorded on minibatches of shape {tuple(old.shape)}, got "
+                f"{tuple(new.shape)}: train with the batch size it was recorded with (cuda_graph=True)"
+            )
+        old.copy_(new, non_blocking=True)
+
+
+def gradient_step(model: TwoStageSAC) -> GradientStep:
+    """The model's gradient step: recorded as a CUDA graph where ``cuda_graph`` is set and the model trains on CUDA,
+    eager elsewhere (a CUDA graph runs on CUDA alone)."""
+    if model.cuda_graph and model.device.type == "cuda":
+        return CUDAGraphStep(model)
+    return GradientStep(model, model.updates)
+
+
+def check_cuda_graph(model: TwoStageSAC) -> None:
+    """A clear error where ``cuda_graph=True`` cannot record the step, on any device: a learning-rate schedule (the
+    graph records the optimizers' steps with one rate) or an update that asks the host mid-step."""
+    if not model.cuda_graph:
+        return
+    if callable(model.learning_rate):
+        raise ValueError(
+            "cuda_graph=True records the optimizers' steps with one learning rate: use a constant learning_rate, not "
+            f"a schedule ({model.learning_rate!r}), or cuda_graph=False"
+        )
+    refused = [type(update).__name__ for update in model.updates if not update.capturable]
+    if refused:
+        raise ValueError(
+            f"cuda_graph=True cannot record {', '.join(refused)}: its target decodes pick by pick with host checks "
+            "(TAMPolicy(mixer='future')); use cuda_graph=False"
+        )
+
+
+def eager_optimizers(parameters: dict[str, dict]) -> dict[str, dict]:
+    """``parameters`` (SB3's ``get_parameters``) with every optimizer state's ``capturable`` flag off."""
+    for state in parameters.values():
+        for group in state.get("param_groups", ()):
+            if group.get("capturable"):
+                group["capturable"] = False  # a copy: ``state_dict`` copies each group's settings
+    return parameters

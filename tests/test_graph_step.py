@@ -1,0 +1,131 @@
+"""The gradient step recorded as a CUDA graph (``cuda_graph=True``, :mod:`sb3_taskalloc.two_stage_sac.graph_step`): the
+padded step it records is the eager step up to rounding (on the CPU), its settings are checked on any device, a model
+trained with it saves eager optimizers, and on CUDA the replayed graph is the padded step run eagerly."""
+
+from __future__ import annotations
+
+import warnings
+from collections import defaultdict
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+
+import envs  # noqa: F401  (registers the TaskAlloc ids)
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.two_stage_sac import graph_step
+
+needs_cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+
+
+def filled(device: str = "cpu", search: bool = True) -> TwoStageSAC:
+    """RBF with its first 12 robots, both stages trained, the team search on (or off); 48 warm-up steps stored."""
+    env = gym.make("TaskAlloc/RBF-v0", entity_rows=tuple(range(12)))
+    select = {"search_coef": 30.0 if search else 0.0, "search_samples": 8}
+    model = TwoStageSAC("TAMPolicy", env, learning_starts=48, seed=0, device=device, select_kwargs=select)
+    with warnings.catch_warnings():  # the warm-up alone: decisions stored, nothing trained
+        warnings.simplefilter("ignore", UserWarning)
+        model.learn(48)
+    return model
+
+
+def run_steps(model: TwoStageSAC, step: graph_step.GradientStep, n: int) -> dict[str, list[float]]:
+    """``n`` gradient steps of ``step`` on the minibatches and random streams of seeds 0..n−1; the logged values."""
+    logs: dict[str, list[th.Tensor]] = defaultdict(list)
+    for k in range(n):
+        np.random.seed(k)  # the replay buffer samples with numpy's global stream
+        th.manual_seed(k)
+        step(model.replay_buffer.sample(16), logs)
+    return {key: [float(v) for v in values] for key, values in logs.items()}
+
+
+def assert_same_logs(a: dict[str, list[float]], b: dict[str, list[float]], rtol: float, atol: float) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_allclose(a[key], b[key], rtol=rtol, atol=atol, err_msg=key)
+
+
+def padded(model: TwoStageSAC) -> graph_step.GradientStep:
+    return graph_step.GradientStep(model, [type(update)(model, padded=True) for update in model.updates])
+
+
+def assert_same_models(a: TwoStageSAC, b: TwoStageSAC, tol: float) -> None:
+    for (name, p), q in zip(a.policy.named_parameters(), b.policy.parameters(), strict=True):
+        th.testing.assert_close(p, q, atol=tol, rtol=0, msg=name)
+
+
+def test_padded_gradient_step_is_the_eager_one():
+    """What the graph records, the padded updates of both stages with the team search, run eagerly: the same losses,
+    temperatures and search statistics as the eager step, and the same weights after three steps, up to rounding."""
+    eager, pad = filled(), filled()
+    assert [type(u).__name__ for u in eager.updates] == ["PreAssignUpdate", "SelectUpdate"]
+    logs = run_steps(eager, graph_step.GradientStep(eager, eager.updates), 3)
+    assert logs["select_search_loss"][0] != 0  # the search found better teams: its term is in the step
+    assert_same_logs(logs, run_steps(pad, padded(pad), 3), 1e-5, 1e-6)
+    assert_same_models(eager, pad, 1e-6)
+
+
+def test_cuda_graph_settings_are_checked_on_every_device():
+    """``cuda_graph`` is a bool; it needs a constant learning rate and updates without host checks, and says so on any
+    device. On the CPU the model trains with the eager step."""
+    env = gym.make("TaskAlloc/Almighty-v0")
+    with pytest.raises(ValueError, match="cuda_graph must be True or False"):
+        TwoStageSAC("TAMPolicy", env, cuda_graph="yes", device="cpu")
+    with pytest.raises(ValueError, match="constant learning_rate, not a schedule"):
+        TwoStageSAC("TAMPolicy", env, cuda_graph=True, learning_rate=lambda progress: 1e-3 * progress, device="cpu")
+    with pytest.raises(ValueError, match="cannot record FutureCriticUpdate"):
+        TwoStageSAC(
+            "TAMPolicy", env, cuda_graph=True, train_preassign_actor=False, policy_kwargs={"mixer": "future"}, device="cpu"
+        )
+    model = TwoStageSAC("TAMPolicy", env, cuda_graph=True, learning_starts=10, device="cpu", seed=0)
+    assert type(model.gradient_step) is graph_step.GradientStep
+    model.learn(30)
+    assert model._n_updates == 20
+
+
+def test_a_model_saves_eager_optimizers(tmp_path):
+    """A graph step's optimizers are ``capturable`` (their step counts on the device), which Adam refuses on the CPU:
+    the saved model keeps the live one's state but not that flag, and loads and trains on the CPU."""
+    model = filled()
+    model.learn(8, reset_num_timesteps=False)
+    graph_step.CUDAGraphStep(model).make_capturable()  # what the first graph step does (on CUDA)
+    assert all(group["capturable"] for group in model.selector.optimizer.param_groups)
+    model.save(tmp_path / "m")
+    assert model.selector.optimizer.param_groups[0]["capturable"]  # the live model is left as it was
+    loaded = TwoStageSAC.load(tmp_path / "m", env=model.get_env(), device="cpu")
+    groups = [g for opt in (loaded.selector.optimizer, loaded.critic.optimizer) for g in opt.param_groups]
+    assert groups and not any(group["capturable"] for group in groups)
+    saved, live = (m.selector.optimizer.state_dict()["state"][0]["exp_avg"] for m in (loaded, model))
+    th.testing.assert_close(saved, live)
+    loaded.learn(8, reset_num_timesteps=False)
+    assert loaded._n_updates == model._n_updates + 8
+
+
+@needs_cuda
+def test_cuda_graph_replays_the_padded_step():
+    """On CUDA, the warm-up steps, the recording and its replays on new minibatches give the losses and weights of the
+    padded step run eagerly, up to rounding (no team search: its samples come from other offsets of the random stream)."""
+    eager, graphed = (filled("cuda", search=False) for _ in range(2))
+    step = graph_step.CUDAGraphStep(graphed)
+    assert step.graph is None
+    logs = run_steps(graphed, step, graph_step.GRAPH_WARMUP + 3)
+    assert step.graph is not None and step.calls == graph_step.GRAPH_WARMUP
+    assert_same_logs(run_steps(eager, padded(eager), graph_step.GRAPH_WARMUP + 3), logs, 1e-4, 1e-5)
+    assert_same_models(eager, graphed, 1e-4)
+
+
+@needs_cuda
+def test_cuda_graph_trains_the_zoo_block_and_loads_on_the_cpu(tmp_path):
+    """RBF's zoo block with ``cuda_graph=True`` on CUDA: the step is recorded, training runs with finite losses and
+    changes the pointer, and the model loads and acts on the CPU."""
+    model = TwoStageSAC.from_zoo("TaskAlloc/RBF-v0", seed=0, learning_starts=64, cuda_graph=True, device="cuda")
+    model.zoo_callbacks = ()  # no DAgger phase
+    before = [p.detach().clone() for p in model.selector.parameters()]
+    model.learn(8 * 20)  # 12 gradient steps: the warm-up, the recording, 8 replays
+    assert isinstance(model.gradient_step, graph_step.CUDAGraphStep) and model.gradient_step.graph is not None
+    assert any(not th.equal(p, q) for p, q in zip(before, model.selector.parameters(), strict=True))
+    model.save(tmp_path / "m")
+    loaded = TwoStageSAC.load(tmp_path / "m", device="cpu")
+    obs = gym.make("TaskAlloc/RBF-v0").reset(seed=0)[0]
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
