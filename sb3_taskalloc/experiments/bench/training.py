@@ -87,7 +87,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     transitions with one batched decision) and the minutes that rate needs for 100,000 env steps; the gradient step
     and the stochastic decision timed apart; replay memory; and the gradient step on RBF scaled to fewer entities (what
     a step costs apart from the entity count). On CUDA, also the GPU kernel time and the kernel launches per gradient
-    step (``torch.profiler``; ``None`` on the CPU)."""
+    step (``torch.profiler``; ``None`` on the CPU), and each zoo block again with ``cuda_graph=True``."""
     import gymnasium as gym
     from stable_baselines3.common.env_util import make_vec_env
 
@@ -105,6 +105,8 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
             model = TwoStageSAC("TAMPolicy", gym.make(env_id), learning_starts=64, batch_size=64, seed=0, device=device)
             rows.append(measure_training(model, device, steps, blocks, env_id, 60 if env_id == "TaskAlloc/RBF-v0" else None))
             rows.append(zoo_block_row(env_id, device, steps, blocks, dagger=not args.quick))
+            if device == "cuda":  # the block as it trains best on a GPU: its gradient step replayed from a CUDA graph
+                rows.append(zoo_block_row(env_id, device, steps, blocks, dagger=False, overrides={"cuda_graph": True}))
             if env_id == "TaskAlloc/RBF-v0":  # vectorised collection: one batched decision for n_envs envs
                 for n_envs in () if args.quick else (8,):
                     vec = make_vec_env(env_id, n_envs=n_envs, seed=0)
