@@ -129,3 +129,19 @@ def test_cuda_graph_trains_the_zoo_block_and_loads_on_the_cpu(tmp_path):
     loaded = TwoStageSAC.load(tmp_path / "m", device="cpu")
     obs = gym.make("TaskAlloc/RBF-v0").reset(seed=0)[0]
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+
+def test_cuda_graph_keeps_the_digests_of_results():
+    """``cuda_graph`` changes no CPU result, so its default is not part of a result's digest (earlier results stay
+    valid); set in a run's keywords, it files that run apart."""
+    from sb3_taskalloc.experiments.budgets import code_defaults
+    from sb3_taskalloc.experiments.learn import LearnRun
+
+    assert "cuda_graph" not in code_defaults()["TwoStageSAC"] and "tau" in code_defaults()["TwoStageSAC"]
+    run = LearnRun(env="Almighty", steps=600, eval_episodes=2, eval_every=600, planners=())
+    assert (
+        run.key
+        != LearnRun(
+            env="Almighty", steps=600, eval_episodes=2, eval_every=600, planners=(), algo_kwargs={"cuda_graph": True}
+        ).key
+    )
