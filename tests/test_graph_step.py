@@ -86,7 +86,8 @@ def test_cuda_graph_settings_are_checked_on_every_device():
 
 def test_a_model_saves_eager_optimizers(tmp_path):
     """A graph step's optimizers are ``capturable`` (their step counts on the device), which Adam refuses on the CPU:
-    the saved model keeps the live one's state but not that flag, and loads and trains on the CPU."""
+    the saved model keeps the live one's state but not that flag, and loads and trains on the CPU. Loading parameters
+    into a model rebuilds its graph step."""
     model = filled()
     model.learn(8, reset_num_timesteps=False)
     graph_step.CUDAGraphStep(model).make_capturable()  # what the first graph step does (on CUDA)
@@ -100,6 +101,10 @@ def test_a_model_saves_eager_optimizers(tmp_path):
     th.testing.assert_close(saved, live)
     loaded.learn(8, reset_num_timesteps=False)
     assert loaded._n_updates == model._n_updates + 8
+    # Loading parameters into a model replaces its optimizers' state tensors: a recorded graph step is rebuilt.
+    recorded = model.gradient_step = graph_step.CUDAGraphStep(model)
+    model.set_parameters(str(tmp_path / "m"))
+    assert model.gradient_step is not recorded
 
 
 @needs_cuda

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch as th
 
@@ -160,10 +160,24 @@ def check_cuda_graph(model: TwoStageSAC) -> None:
         )
 
 
-def eager_optimizers(parameters: dict[str, dict]) -> dict[str, dict]:
-    """``parameters`` (SB3's ``get_parameters``) with every optimizer state's ``capturable`` flag off."""
-    for state in parameters.values():
-        for group in state.get("param_groups", ()):
-            if group.get("capturable"):
-                group["capturable"] = False  # a copy: ``state_dict`` copies each group's settings
-    return parameters
+class GraphStepMixin:
+    """For :class:`~sb3_taskalloc.TwoStageSAC`: its parameters saved and loaded around a CUDA graph step."""
+
+    gradient_step: GradientStep
+
+    def get_parameters(self) -> dict[str, dict]:
+        """SB3's, with the optimizers saved as eager ones (``capturable`` off, which a CUDA graph step sets): Adam
+        refuses it on the CPU, and the saved model loads and trains on any device."""
+        parameters: dict[str, dict] = super().get_parameters()  # type: ignore[misc]
+        for state in parameters.values():
+            for group in state.get("param_groups", ()):
+                if group.get("capturable"):
+                    group["capturable"] = False  # a copy: ``state_dict`` copies each group's settings
+        return parameters
+
+    def set_parameters(self, load_path_or_dict: Any, exact_match: bool = True, device: th.device | str = "auto") -> None:
+        """SB3's, then a new gradient step where a CUDA graph was recorded: loading replaces the optimizers' state
+        tensors, which the recorded graph would go on reading and writing."""
+        super().set_parameters(load_path_or_dict, exact_match, device)  # type: ignore[misc]
+        if isinstance(getattr(self, "gradient_step", None), CUDAGraphStep):
+            self.gradient_step = gradient_step(self)  # type: ignore[arg-type]

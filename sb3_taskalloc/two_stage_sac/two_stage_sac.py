@@ -34,7 +34,7 @@ SelfTwoStageSAC = TypeVar("SelfTwoStageSAC", bound="TwoStageSAC")
 DEFAULT_TOTAL_TIMESTEPS = 20_000
 
 
-class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
+class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, OffPolicyAlgorithm):
     """Two-stage discrete soft actor-critic (paper: "A Two-stage Reinforcement Learning-based Approach for
     Multi-entity Task Allocation"), for the ``TaskAlloc`` environments.
 
@@ -425,11 +425,6 @@ class TwoStageSAC(AtomicSaveMixin, DecodingMixin, OffPolicyAlgorithm):
     def _excluded_save_params(self) -> list[str]:
         aliases = ["actor", "critic", "critic_target", "selector", "select_critic", "select_critic_target"]
         return [*super()._excluded_save_params(), *aliases, "updates", "gradient_step", "zoo_callbacks"]
-
-    def get_parameters(self) -> dict[str, dict]:
-        """SB3's, with the optimizers saved as eager ones (``capturable`` off, which a CUDA graph step sets): Adam
-        refuses it on the CPU, and the saved model loads and trains on any device."""
-        return graph_step.eager_optimizers(super().get_parameters())
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "selector.optimizer", "select_critic.optimizer"]
