@@ -30,13 +30,13 @@ def filled(device: str = "cpu", search: bool = True) -> TwoStageSAC:
     return model
 
 
-def run_steps(model: TwoStageSAC, step: graph_step.GradientStep, n: int) -> dict[str, list[float]]:
+def run_steps(model: TwoStageSAC, step: graph_step.GradientStep, n: int, rows: int = 16) -> dict[str, list[float]]:
     """``n`` gradient steps of ``step`` on the minibatches and random streams of seeds 0..n−1; the logged values."""
     logs: dict[str, list[th.Tensor]] = defaultdict(list)
     for k in range(n):
         np.random.seed(k)  # the replay buffer samples with numpy's global stream
         th.manual_seed(k)
-        step(model.replay_buffer.sample(16), logs)
+        step(model.replay_buffer.sample(rows), logs)
     return {key: [float(v) for v in values] for key, values in logs.items()}
 
 
@@ -118,6 +118,11 @@ def test_cuda_graph_replays_the_padded_step():
     assert step.graph is not None and step.calls == graph_step.GRAPH_WARMUP
     assert_same_logs(run_steps(eager, padded(eager), graph_step.GRAPH_WARMUP + 3), logs, 1e-4, 1e-5)
     assert_same_models(eager, graphed, 1e-4)
+    # Minibatches of another size: warmed up and recorded anew.
+    first = step.graph
+    more = run_steps(graphed, step, graph_step.GRAPH_WARMUP + 2, rows=8)
+    assert step.graph is not None and step.graph is not first
+    assert all(np.isfinite(values).all() for values in more.values())
 
 
 @needs_cuda

@@ -75,7 +75,7 @@ class CUDAGraphStep(GradientStep):
 
     def make_capturable(self) -> None:
         """Adam with its step count on the device (``capturable``), which the graph increments: set here rather than
-        at construction, since ``load`` restores the saved (eager) optimizer settings after it."""
+        at construction, since ``load`` restores the saved (eager) optimizer settings after it. Idempotent."""
         for optimizer in self.optimizers():
             for group in optimizer.param_groups:
                 group["capturable"] = True
@@ -85,6 +85,8 @@ class CUDAGraphStep(GradientStep):
                         state["step"] = state["step"].to(param.device, th.float32)
 
     def __call__(self, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
+        if self.inputs is not None and shapes(self.inputs) != shapes(data):
+            self.graph, self.inputs, self.calls = None, None, 0  # another batch size or env size: warm up, record anew
         if self.graph is None and self.calls < GRAPH_WARMUP:
             if self.calls == 0:
                 self.make_capturable()
@@ -123,14 +125,13 @@ def _tensors(data: TwoStageReplayBufferSamples) -> Iterator[th.Tensor]:
             yield field
 
 
+def shapes(data: TwoStageReplayBufferSamples) -> list[tuple[int, ...]]:
+    return [tuple(x.shape) for x in _tensors(data)]
+
+
 def copy_into(inputs: TwoStageReplayBufferSamples, data: TwoStageReplayBufferSamples) -> None:
-    """Copy a new minibatch into the recorded one's tensors (same keys and shapes: the same batch size)."""
+    """Copy a new minibatch into the recorded one's tensors (of the same shapes)."""
     for old, new in zip(_tensors(inputs), _tensors(data), strict=True):
-        if old.shape != new.shape:
-            raise ValueError(
-                f"the CUDA graph of the gradient step was recorded on minibatches of shape {tuple(old.shape)}, got "
-                f"{tuple(new.shape)}: train with the batch size it was recorded with (cuda_graph=True)"
-            )
         old.copy_(new, non_blocking=True)
 
 
