@@ -1,12 +1,13 @@
 """TwoStageSAC's gradient step: eager (the reference), or recorded once as a CUDA graph and replayed (``cuda_graph=True``,
 implementation detail 26).
 
-On CUDA an eager step is bound by the host: Python launches each of its thousands of small kernels (about 8,000 at
-RBF's zoo block, for 18 ms of GPU work in 118 ms of wall time). A CUDA graph records the kernels of one step once, both
+On CUDA an eager step is bound by the host: Python launches each of its thousands of small kernels (7,874 at RBF's zoo
+block on an H200, for 16 ms of GPU work in 177 ms of wall time). A CUDA graph records the kernels of one step once, both
 stages' losses laid out with fixed shapes (the ``padded`` updates of :mod:`.updates`), their backward passes and the
 optimizers' steps (Adam with ``capturable=True``, its step count on the device), and replays them with one launch on
 each new minibatch, copied into the recorded input tensors. The target networks' Polyak averaging stays outside it:
-``target_update_interval`` may skip it.
+``target_update_interval`` may skip it. There the block's step takes 73 ms, 60 of them on the GPU, and training runs at
+62.7 env steps/s against 31.3 eager (docs/benchmarks.md, "The gradient step as a CUDA graph").
 """
 
 from __future__ import annotations
