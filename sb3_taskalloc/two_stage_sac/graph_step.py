@@ -62,6 +62,7 @@ class CUDAGraphStep(GradientStep):
         self.outputs: Logs = {}
 
     def optimizers(self) -> Iterator[th.optim.Optimizer]:
+        """Every optimizer the step may run (the pre-assign stage's where the policy has one, the tuned temperatures)."""
         m = self.model
         for optimizer in (
             m.selector.optimizer,
@@ -127,6 +128,7 @@ def _tensors(data: TwoStageReplayBufferSamples) -> Iterator[th.Tensor]:
 
 
 def shapes(data: TwoStageReplayBufferSamples) -> list[tuple[int, ...]]:
+    """The shapes of a minibatch's tensors, which a recorded graph is bound to."""
     return [tuple(x.shape) for x in _tensors(data)]
 
 
