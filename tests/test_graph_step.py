@@ -47,7 +47,7 @@ def assert_same_logs(a: dict[str, list[float]], b: dict[str, list[float]], rtol:
 
 
 def padded(model: TwoStageSAC) -> graph_step.GradientStep:
-    return graph_step.GradientStep(model, [type(update)(model, padded=True) for update in model.updates])
+    return graph_step.GradientStep(model, graph_step.padded_updates(model))
 
 
 def assert_same_models(a: TwoStageSAC, b: TwoStageSAC, tol: float) -> None:

@@ -55,7 +55,7 @@ class CUDAGraphStep(GradientStep):
     """
 
     def __init__(self, model: TwoStageSAC) -> None:
-        super().__init__(model, [type(update)(model, padded=True) for update in model.updates])
+        super().__init__(model, padded_updates(model))
         self.calls = 0
         self.graph: th.cuda.CUDAGraph | None = None
         self.inputs: TwoStageReplayBufferSamples | None = None
@@ -117,6 +117,11 @@ class CUDAGraphStep(GradientStep):
         with th.cuda.graph(self.graph):
             super().__call__(data, outputs)
         self.outputs = dict(outputs)
+
+
+def padded_updates(model: TwoStageSAC) -> list[PreAssignUpdate | SelectUpdate]:
+    """The model's updates laid out with fixed shapes and no host read (``padded=True``): what a CUDA graph records."""
+    return [type(update)(model, padded=True) for update in model.updates]
 
 
 def _tensors(data: TwoStageReplayBufferSamples) -> Iterator[th.Tensor]:
