@@ -3,8 +3,10 @@ a model saved with those options loads with its search as its decoder."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -127,3 +129,58 @@ def test_a_new_strategy_is_one_registered_class(legacy):
         assert (action == M).all()
     finally:
         del DECODERS["idle_for_test"]
+
+
+def _best_assignment(view, b: int, entities: np.ndarray, cost: np.ndarray) -> float:
+    """The most profitable assignment of ``entities`` to the open tasks of state ``b`` (or to none), a task counting only
+    where its team covers its demand: Σ_j (r_j − Σ_{i ∈ team j} cost_ij), by enumerating every assignment."""
+    tasks = np.flatnonzero(view.task_mask[b].numpy())
+    supply, demand, reward = view.supply[b].numpy(), view.demand[b].numpy(), view.reward[b].numpy()
+    best = 0.0
+    for choice in itertools.product(range(len(tasks) + 1), repeat=len(entities)):
+        teams = [entities[np.asarray(choice) == k] for k in range(len(tasks))]
+        if any(len(t) and (supply[t].sum(0) < demand[j] - 1e-6).any() for t, j in zip(teams, tasks, strict=True)):
+            continue
+        best = max(best, sum(float(reward[j]) - float(cost[t, j].sum()) for t, j in zip(teams, tasks, strict=True) if len(t)))
+    return best
+
+
+def test_the_surcharge_raises_every_pair_cost_in_exact_tops_objective():
+    """``exact_top(surcharge=σ)`` with every pair allowed (``top`` = M) is worth, at the costs (1 + σ)·c, the best of
+    all assignments enumerated, and σ = 0 is ``exact_top`` itself; a negative surcharge is refused by name."""
+    from sb3_taskalloc.two_stage_sac.decoding import decide_preassigned
+
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    env = gym.make("TaskAlloc/MT-v0")
+    obs, _ = env.reset(seed=5)
+    states = []
+    for _ in range(8):
+        states.append(obs)
+        obs = env.step(model.predict(obs, deterministic=True)[0])[0]
+    policy = model.policy
+    view = policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in states]) for k in states[0]})[0])
+    # Five free trucks per state keep the enumeration small: (M + 1)^5 assignments.
+    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 5))
+    M, sigma = view.reward.shape[1], 0.5
+    cost = view.pair_cost * (1 + sigma)
+    with th.no_grad():
+        first = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=M, surcharge=sigma))
+        plain = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2, surcharge=0.0))
+        exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
+    team = (first.pick_rank >= 0) & first.kept.unsqueeze(-1)  # (B, M, N)
+    found = (first.kept * (view.reward - (team.float() * cost.transpose(1, 2)).sum(-1))).sum(-1)
+    checked = 0
+    for b in range(view.reward.shape[0]):
+        entities = np.flatnonzero(view.entity_mask[b].numpy())
+        if len(entities) and bool(view.task_mask[b].any()):
+            assert float(found[b]) == pytest.approx(_best_assignment(view, b, entities, cost[b].numpy()), abs=1e-3)
+            checked += 1
+    assert checked >= 3
+    assert th.equal(plain.env_action, exact.env_action)
+    # a surcharge this large leaves some truck home that the plain objective sends
+    with th.no_grad():
+        unsurcharged = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=M))
+    assert int((first.env_action < M).sum()) < int((unsurcharged.env_action < M).sum())
+    with pytest.raises(ValueError, match="surcharge must be a finite number >= 0"):
+        get_decoding_strategy("exact_top", surcharge=-0.1)
+    assert get_decoding_strategy("exact_top", top=2, surcharge=0.08).config == {"top": 2, "surcharge": 0.08, "seed": 0}

@@ -285,3 +285,23 @@ def test_the_learning_experiment_trains_and_reevaluates_the_future_critic(tmp_pa
     assert searched.name == "Almighty_decoder_value_top_top_2.md"
     rows = json.loads(searched.with_suffix(".json").read_text())["seeds"]
     assert len(rows[0]["trained"]) == len(rows[0]["untrained"]) == 2
+
+
+def test_the_surcharge_is_value_top_with_uniform_negative_pair_values(future_model: TwoStageSAC) -> None:
+    """``exact_top(surcharge=σ)`` decides as ``value_top`` whose pair values are g = −σ·c on every valid pair: the
+    setting is the measured replacement of the learned values (docs/learning.md)."""
+    policy = future_model.policy
+    _, view = visited_states(future_model)
+    sigma = 0.5  # large enough that the surcharge moves some decision of these states
+
+    def surcharge(_: object, v: ObsView) -> th.Tensor:
+        return -sigma * v.pair_cost * v.valid
+
+    with th.no_grad():
+        with patch("sb3_taskalloc.two_stage_sac.decoding.future_pair_values", surcharge):
+            uniform = decide_preassigned(policy, view, get_decoding_strategy("value_top", top=2))
+        surcharged = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2, surcharge=sigma))
+        plain = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
+    assert th.equal(uniform.env_action, surcharged.env_action)
+    assert th.equal(uniform.pick_rank, surcharged.pick_rank)
+    assert not th.equal(surcharged.env_action, plain.env_action)

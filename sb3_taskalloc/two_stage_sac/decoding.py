@@ -187,18 +187,30 @@ class ExactTopDecoder(ExactCoversDecoder):
     formulation on the pairs that join each free entity to one of its ``top`` most probable tasks (implementation
     detail 22); its teams are the cover's, each decoded by the pointer among its members. Entities outside the cover
     stay free for the next round; the round counts as tried the tasks it covers and those of the argmax's candidate
-    sets."""
+    sets.
+
+    With ``surcharge`` σ > 0 each pair costs (1 + σ)·c in the round's solve and in weighing its teams: the opportunity
+    cost of committing an entity now, which the per-step objective leaves out (an entity sent on a trip is missing from
+    the tasks that appear while it travels). σ = 0.08 gains over σ = 0 on RBF and MT as much as the future critic's
+    learned pair values did (docs/learning.md, "Is value_top's gain a uniform surcharge").
+    """
 
     name = "exact_top"
 
-    def __init__(self, top: int = 1, seed: int = 0) -> None:
+    def __init__(self, top: int = 1, surcharge: float = 0.0, seed: int = 0) -> None:
         super().__init__(seed)
         check_counts({"top": top})
-        self.top = top
+        check_finite({"surcharge": surcharge}, minimum=0.0, inclusive=True)
+        self.top, self.surcharge = top, float(surcharge)
 
     @property
     def config(self) -> dict[str, Any]:
-        return {"top": self.top, "seed": self.seed}
+        return {"top": self.top, "surcharge": self.surcharge, "seed": self.seed}
+
+    def costed(self, policy: TAMPolicy, view: ObsView) -> ObsView:
+        """The view whose pair costs the round's solve and the weighing of its teams read: ``view`` itself without a
+        surcharge (the same object), else each pair's cost raised by it."""
+        return view if self.surcharge == 0.0 else view._replace(pair_cost=view.pair_cost + self.surcharge * view.pair_cost)
 
     def preassign(
         self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
@@ -208,17 +220,27 @@ class ExactTopDecoder(ExactCoversDecoder):
         # first column is the argmax and top = 1 keeps the argmax's own tasks (topk's order among ties is unspecified).
         order = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices
         chosen = th.zeros_like(view.valid).scatter_(-1, order[..., : min(self.top, M)], True)
-        covers = exact_covers(view, chosen & view.valid & view.assignable.unsqueeze(-1))
+        covers = exact_covers(self.costed(policy, view), chosen & view.valid & view.assignable.unsqueeze(-1))
         argmax = th.where(view.assignable, order[..., 0], -1)
         tasks = th.arange(M, device=argmax.device).view(1, M, 1)
         return covers, (argmax.unsqueeze(1) == tasks).any(-1)
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so the
-        # exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
-        # pointer's argmax among them (the exact cover's decode is that same decode). Only a HiGHS row stopped at its
-        # node limit, unproven, may keep a member that a second solve would drop.
-        found = select_search(policy.selector.head, view, task_of, 1, self.temperature)
+        head = policy.selector.head
+        costed = self.costed(policy, view)
+        if costed is view:
+            # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so
+            # the exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
+            # pointer's argmax among them (the exact cover's decode is that same decode). Only a HiGHS row stopped at its
+            # node limit, unproven, may keep a member that a second solve would drop.
+            found = select_search(head, view, task_of, 1, self.temperature)
+            return found.rank, found.profit > 0
+        # On other costs than the pointer's, the pointer's argmax team (decoded on the costs it was trained on) is weighed
+        # by the round's objective against the exact cover among the candidates, which the round's solve already chose.
+        base = decode_round(head, view, task_of, deterministic=True)
+        members = (base.rank >= 0).float()  # (B, M, N)
+        p0 = base.kept() * (view.reward - (members * costed.pair_cost.transpose(1, 2)).sum(-1))
+        found = cover_search(head, costed, task_of, against=SelectSearchResult(base.rank, p0, p0), members=task_of)
         return found.rank, found.profit > 0
 
 
@@ -235,32 +257,25 @@ class ValueTopDecoder(ExactTopDecoder):
     name = "value_top"
 
     def __init__(self, top: int = 2, seed: int = 0) -> None:
-        super().__init__(top, seed)
+        super().__init__(top, seed=seed)
         self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
 
-    def adjusted(self, policy: TAMPolicy, view: ObsView) -> ObsView:
+    @property
+    def config(self) -> dict[str, Any]:
+        return {"top": self.top, "seed": self.seed}
+
+    def costed(self, policy: TAMPolicy, view: ObsView) -> ObsView:
         """:func:`value_aware_view` of ``view``, computed once per round: a round's teams read the view its
-        pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves. The
-        teams release it, so the decoder holds no policy or state between rounds."""
+        pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves."""
         if self._adjusted is None or self._adjusted[0] is not policy or self._adjusted[1] is not view:
             self._adjusted = (policy, view, value_aware_view(policy, view))
         return self._adjusted[2]
 
-    def preassign(
-        self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
-    ) -> tuple[th.Tensor, th.Tensor | None]:
-        return super().preassign(policy, self.adjusted(policy, view), dist, first_round)
-
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        head = policy.selector.head
-        adjusted = self.adjusted(policy, view)
-        self._adjusted = None
-        base = decode_round(head, view, task_of, deterministic=True)  # the pointer on the costs it was trained on
-        members = (base.rank >= 0).float()  # (B, M, N)
-        p0 = base.kept() * (view.reward - (members * adjusted.pair_cost.transpose(1, 2)).sum(-1))
-        # The candidates are the exact cover of the adjusted view (see ExactTopDecoder.teams), not solved again.
-        found = cover_search(head, adjusted, task_of, against=SelectSearchResult(base.rank, p0, p0), members=task_of)
-        return found.rank, found.profit > 0
+        try:
+            return super().teams(policy, view, task_of)
+        finally:  # the teams release the round's value-aware view: the decoder holds no policy or state between rounds
+            self._adjusted = None
 
 
 def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
