@@ -145,26 +145,74 @@ def _best_assignment(view, b: int, entities: np.ndarray, cost: np.ndarray) -> fl
     return best
 
 
-def test_the_surcharge_raises_every_pair_cost_in_exact_tops_objective():
+def _visited(model: TwoStageSAC, steps: int = 12):
+    """The states of ``steps`` deterministic MT steps from reset seed 5, as one batch's view."""
+    env = gym.make("TaskAlloc/MT-v0")
+    obs, _ = env.reset(seed=5)
+    states = []
+    for _ in range(steps):
+        states.append(obs)
+        obs = env.step(model.predict(obs, deterministic=True)[0])[0]
+    policy = model.policy
+    return policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in states]) for k in states[0]})[0])
+
+
+@pytest.fixture(scope="module")
+def mt_model() -> TwoStageSAC:
+    """A small MT model whose pointer has trained a few steps (its decisions are not the rule's alone)."""
+    model = TwoStageSAC(
+        "TAMPolicy",
+        "TaskAlloc/MT-v0",
+        policy_kwargs={"hidden_dim": 16},
+        train_preassign_actor=False,
+        learning_starts=40,
+        batch_size=16,
+        buffer_size=1000,
+        seed=0,
+        device="cpu",
+    )
+    return model.learn(60)
+
+
+@pytest.mark.parametrize("surcharge", [0.0, 0.08])
+def test_an_exact_top_round_keeps_its_covers_teams(mt_model: TwoStageSAC, surcharge: float) -> None:
+    """The exact cover of a round's candidate pairs is the candidates themselves (each team of the round's cover is the
+    most profitable of its own members), which is why its teams do not solve it again; and without a surcharge the
+    teams equal those of the search that does."""
+    from sb3_taskalloc.two_stage_sac.decoding import decide_preassigned
+    from sb3_taskalloc.two_stage_sac.search import cover_search, exact_covers
+
+    policy = mt_model.policy
+    view = _visited(mt_model)
+    decoder = get_decoding_strategy("exact_top", top=2, surcharge=surcharge)
+    visited: list = []
+    with th.no_grad():
+        decide_preassigned(policy, view, decoder, visited)
+        for round_view, task_of in visited:
+            M = round_view.task_mask.shape[1]
+            allowed = task_of.unsqueeze(-1) == th.arange(M)
+            assert th.equal(exact_covers(decoder.costed(round_view), allowed), task_of)
+            rank, kept = decoder.teams(policy, round_view, task_of)
+            if surcharge == 0.0:
+                solved = cover_search(policy.selector.head, round_view, task_of)
+                assert th.equal(rank, solved.rank) and th.equal(kept, solved.profit > 0)
+    assert sum(int((c >= 0).sum()) for _, c in visited) >= 10
+
+
+def test_the_surcharge_raises_every_pair_cost_in_exact_tops_objective(mt_model: TwoStageSAC) -> None:
     """``exact_top(surcharge=σ)`` with every pair allowed (``top`` = M) is worth, at the costs (1 + σ)·c, the best of
     all assignments enumerated, and σ = 0 is ``exact_top`` itself; a negative surcharge is refused by name."""
     from sb3_taskalloc.two_stage_sac.decoding import decide_preassigned
 
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
-    env = gym.make("TaskAlloc/MT-v0")
-    obs, _ = env.reset(seed=5)
-    states = []
-    for _ in range(8):
-        states.append(obs)
-        obs = env.step(model.predict(obs, deterministic=True)[0])[0]
-    policy = model.policy
-    view = policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in states]) for k in states[0]})[0])
+    policy = mt_model.policy
+    view = _visited(mt_model, steps=8)
     # Five free trucks per state keep the enumeration small: (M + 1)^5 assignments.
     view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 5))
     M, sigma = view.reward.shape[1], 0.5
     cost = view.pair_cost * (1 + sigma)
     with th.no_grad():
         first = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=M, surcharge=sigma))
+        unsurcharged = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=M))
         plain = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2, surcharge=0.0))
         exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
     team = (first.pick_rank >= 0) & first.kept.unsqueeze(-1)  # (B, M, N)
@@ -178,9 +226,16 @@ def test_the_surcharge_raises_every_pair_cost_in_exact_tops_objective():
     assert checked >= 3
     assert th.equal(plain.env_action, exact.env_action)
     # a surcharge this large leaves some truck home that the plain objective sends
-    with th.no_grad():
-        unsurcharged = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=M))
     assert int((first.env_action < M).sum()) < int((unsurcharged.env_action < M).sum())
     with pytest.raises(ValueError, match="surcharge must be a finite number >= 0"):
         get_decoding_strategy("exact_top", surcharge=-0.1)
     assert get_decoding_strategy("exact_top", top=2, surcharge=0.08).config == {"top": 2, "surcharge": 0.08, "seed": 0}
+
+
+def test_the_removed_future_critic_is_named_with_its_replacement():
+    """``mixer="future"`` and its ``value_top`` decoder left the library: the error says what decides as well and
+    which commit still loads such a model."""
+    with pytest.raises(ValueError, match=r"mixer='future'.*surcharge=0\.08.*commit [0-9a-f]{7}"):
+        TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"mixer": "future"}, device="cpu")
+    with pytest.raises(ValueError, match="unknown decoding strategy 'value_top'"):
+        get_decoding_strategy("value_top")

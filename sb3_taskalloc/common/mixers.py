@@ -105,37 +105,6 @@ class AMIXMixer(nn.Module):
         return self.mix(q_i, self.context(view))
 
 
-class LinearAMIXMixer(AMIXMixer):
-    """AMIX without its hidden non-linearity, for the future critic (implementation detail 24): Q_tot =
-    (Σ_i Q_i w_i + b)·|u| + c with the monotonic hyper-weights w_i = |(A V)_i|, i.e. Σ_i ω_i(s) Q_i + β(s) with
-    state-dependent weights ω_i(s) = w_i·|u| ≥ 0. Linear in the per-entity values, so an assignment's mixed value is a
-    sum of per-pair coefficients, which an exact solver maximises with the step's profit in one MILP (the
-    ``value_top`` decoder). The hypernetwork is AMIX's.
-
-    :param entity_dim: entity feature size
-    :param task_dim: task feature size
-    :param hidden_dim: hypernetwork width
-    :param hyper_bias: state-dependent bias (else a learned constant)
-    :param activation_fn: activation of the hyper-bias network
-    """
-
-    def __init__(
-        self,
-        entity_dim: int,
-        task_dim: int,
-        hidden_dim: int = 64,
-        hyper_bias: bool = True,
-        activation_fn: type[nn.Module] = nn.ReLU,
-    ) -> None:
-        super().__init__(entity_dim, task_dim, hidden_dim, True, hyper_bias, activation_fn)
-
-    def mix(self, q_i: th.Tensor, ctx: MixContext) -> th.Tensor:
-        """:param q_i: (B, N) per-entity values; :param ctx: :meth:`context` of the states; :return: (B,) Q_tot"""
-        assert ctx.weights is not None  # monotonic hyper-weights
-        mixed = ((q_i * ctx.mask).unsqueeze(1) @ ctx.weights).squeeze(1)
-        return (mixed + ctx.bias) @ self.out_w.abs() + self.out_b
-
-
 class TeamValue(nn.Module):
     """Value of the teams an assignment sends, task by task (not in the paper): V(s, a) = Σ_{j open} g(z_j) with
     z_j = [task features, supply share per resource min(Σ_i a_ij x_ik / d_jk, 2), its minimum over resources,

@@ -2,10 +2,9 @@
 :mod:`~sb3_taskalloc.common.mixers` by :class:`~sb3_taskalloc.TAMPolicy`.
 
 Stage 1 (pre-assignment): :class:`PreAssignActor` and a :class:`TwinCritic` of mixing critics: :class:`AMIXCritic`
-(per-entity scores mixed by AMIX), :class:`FutureCritic` (the exact step profit plus AMIX-mixed future values) or
-:class:`GlobalCritic` (the "W/o AMIX" ablation). The critics split their work the same way: :meth:`context`
-(everything that does not depend on the assignment, computed once) and :meth:`mix` (the value of one assignment), so
-the losses treat them alike.
+(per-entity scores mixed by AMIX) or :class:`GlobalCritic` (the "W/o AMIX" ablation). The critics split their work
+the same way: :meth:`context` (everything that does not depend on the assignment, computed once) and :meth:`mix` (the
+value of one assignment), so the losses treat them alike.
 
 Stage 2 (select): :class:`Selector` (the pointer actor) and :class:`SelectCritic` (its twin Q-functions).
 """
@@ -84,10 +83,6 @@ class MixingCritic(nn.Module, Generic[ContextT]):
     def forward(self, view: ObsView, assign: th.Tensor) -> th.Tensor:
         return self.mix(self.context(view), assign)
 
-    def decision_value(self, ctx: ContextT, candidates: th.Tensor, env_action: th.Tensor) -> th.Tensor:
-        """(B,) Q(s, c) of the decisions whose candidate sets are ``candidates`` (B, M, N)."""
-        return self.mix(ctx, candidates.transpose(1, 2).float())
-
 
 class AMIXCritic(MixingCritic[AMIXContext]):
     """Q_tot(s, c) = AMIX(Σ_j c_ij Q_i(s, j)) (+ V_team(s, c)) with per-entity scores Q_i(s, j) = o_i·q_j (+ pair term).
@@ -117,38 +112,6 @@ class AMIXCritic(MixingCritic[AMIXContext]):
         return q if self.team is None else q + self.team(ctx.view, assign)
 
 
-class FutureCritic(AMIXCritic):
-    """Q(s, a) = P(s, a) + F(s, a): the exact profit P of the teams a decision sends this step, plus F, the AMIX-mixed
-    per-entity values of what the executed assignment leaves for later (``mixer="future"``).
-
-    The network is an :class:`AMIXCritic` whose per-entity scores F_i(s, j) are mixed linearly
-    (:class:`~sb3_taskalloc.common.mixers.LinearAMIXMixer`, no team value), so F(s, a) = Σ_i ω_i(s) F_i(s, a_i) + β(s)
-    with ω_i ≥ 0: a sum of per-pair values an exact solver adds to the profit. It reads the executed assignment a (an
-    entity's task where its team was sent, nothing where it stayed free) instead of the candidate sets, and learns only
-    the future: its TD target is y − P(s, a) (:class:`~sb3_taskalloc.two_stage_sac.updates.FutureCriticUpdate`). P is
-    computed from the observation (:func:`executed_profit`), so two decisions of one state differ in Q by their exact
-    profit difference plus what F learned of their futures (implementation detail 24).
-    """
-
-    def decision_value(self, ctx: AMIXContext, candidates: th.Tensor, env_action: th.Tensor) -> th.Tensor:
-        """(B,) P(s, a) + F(s, a) of the decisions whose env action is ``env_action`` (B, N)."""
-        M = candidates.shape[1]
-        return executed_profit(ctx.view, env_action) + self.mix(ctx, executed_assignment(env_action, M))
-
-
-def executed_assignment(env_action: th.Tensor, n_tasks: int) -> th.Tensor:
-    """(B, N, M) one-hot of each entity's task in the env action (B, N) (slot M, unassigned: a zero row)."""
-    return th.nn.functional.one_hot(env_action.long(), n_tasks + 1)[..., :n_tasks].float()
-
-
-def executed_profit(view: ObsView, env_action: th.Tensor) -> th.Tensor:
-    """(B,) P(s, a) = Σ_{j served} r_j − Σ_i c_{i, a_i}: the profit of the teams the env action sends, the commitment
-    reward of their tasks (each team covers its task: the decoders send only covering teams)."""
-    a = executed_assignment(env_action, view.reward.shape[1])  # (B, N, M)
-    served = a.amax(1)  # (B, M)
-    return (served * view.reward).sum(-1) - (a * view.pair_cost).sum((1, 2))
-
-
 class GlobalCritic(MixingCritic[GlobalContext]):
     """The "W/o AMIX" critic: one MLP over the flattened state and the (one-hot or expected) assignment.
 
@@ -172,7 +135,7 @@ class GlobalCritic(MixingCritic[GlobalContext]):
 class TwinCritic(nn.Module):
     """``n_critics`` independent mixing critics (clipped double-Q).
 
-    :param critics: :class:`AMIXCritic`, :class:`FutureCritic` or :class:`GlobalCritic` instances
+    :param critics: :class:`AMIXCritic` or :class:`GlobalCritic` instances
     """
 
     optimizer: th.optim.Optimizer
@@ -186,11 +149,6 @@ class TwinCritic(nn.Module):
     @property
     def size_agnostic(self) -> bool:
         return all(q.size_agnostic for q in self.q_networks)
-
-    @property
-    def learns_future(self) -> bool:
-        """Whether every critic is a :class:`FutureCritic`, whose per-pair values the ``value_top`` decoder reads."""
-        return all(isinstance(q, FutureCritic) for q in self.q_networks)
 
     def forward(
         self, view: ObsView | None, assign: th.Tensor, contexts: list[CriticContext] | None = None
@@ -207,20 +165,6 @@ class TwinCritic(nn.Module):
 
     def mix(self, contexts: list[CriticContext], assign: th.Tensor) -> tuple[th.Tensor, ...]:
         return tuple(q.mix(ctx, assign) for q, ctx in zip(self.q_networks, contexts, strict=True))  # type: ignore[operator]
-
-    def decision_values(
-        self, view: ObsView, candidates: th.Tensor, env_action: th.Tensor, contexts: list[CriticContext] | None = None
-    ) -> tuple[th.Tensor, ...]:
-        """Each critic's value (B,) of whole decisions, given by their candidate sets (B, M, N) and env actions (B, N):
-        Q(s, c) for the paper's critics, P(s, a) + F(s, a) for :class:`FutureCritic`.
-
-        :param contexts: the critics' contexts on ``view``, when already computed
-        """
-        contexts = self.contexts(view) if contexts is None else contexts
-        return tuple(
-            q.decision_value(ctx, candidates, env_action)  # type: ignore[operator]
-            for q, ctx in zip(self.q_networks, contexts, strict=True)
-        )
 
 
 class Selector(nn.Module):

@@ -141,9 +141,8 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
 
 
 def _critic_value(policy: Any, view: ObsView, decision: Decision) -> float:
-    """Q(s, ·) = min_k of the critics' values of one state's decision: AMIX^k(c) for the paper's critic, P + F^k for the
-    future critic (:meth:`~sb3_taskalloc.common.policies.TwinCritic.decision_values`)."""
-    values = policy.critic.decision_values(view, decision.candidates, decision.env_action)
+    """Q(s, c) = min_k AMIX^k(c) of one state's decision, by its candidate sets c."""
+    values = policy.critic(view, decision.candidates.transpose(1, 2).float())
     return float(th.stack(values, 0).min(0).values.item())
 
 
@@ -217,8 +216,7 @@ def critic_figures(model: Any, sampled: list[dict[str, Any]], within: slice, lea
         n = len(g[-1])
         states = ObsView(*(x[:n] for x in view))  # the states decided in within the limit
         candidates = th.as_tensor(np.stack(e["candidates"][:n]), device=model.device)
-        actions = th.as_tensor(np.stack(e["actions"][:n]), device=model.device)
-        q.append(th.stack(policy.critic.decision_values(states, candidates, actions), 0).min(0).values.cpu().numpy())
+        q.append(th.stack(policy.critic(states, candidates.transpose(1, 2).float()), 0).min(0).values.cpu().numpy())
         if policy.actor_prior is not None:
             now, prior = policy.actor(states), policy.actor_prior(states)
             free = states.assignable

@@ -221,8 +221,8 @@ def diagnose(
     :param branch_stride: every ``branch_stride``-th state of an episode is branched
     """
     policy, gamma = model.policy, float(model.gamma)
-    # The stage-1 critics train where a stage-1 update runs: the pre-assign actor learns, or the future critic trains
-    # with the actor held (:func:`~sb3_taskalloc.two_stage_sac.updates.preassign_update`).
+    # The stage-1 critics train where a stage-1 update runs: where the pre-assign actor learns
+    # (:func:`~sb3_taskalloc.two_stage_sac.updates.preassign_update`).
     critic = policy.critic is not None and any(isinstance(u, PreAssignUpdate) for u in getattr(model, "updates", ()))
     branches = branches if critic else 0
     alpha = float((th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor).item())

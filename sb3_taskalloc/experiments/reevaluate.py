@@ -94,7 +94,7 @@ def reevaluate(
             seed=seed,
             device="cpu",
             policy_kwargs=trained.policy_kwargs,
-            train_preassign_actor=trained.train_preassign_actor,  # the future critic needs its actor held
+            train_preassign_actor=trained.train_preassign_actor,
         )
         untrained.set_decoder(get_decoding_strategy(decoder, **config))
         row = {"seed": seed, "trained": evaluation.episode_returns(trained, env_id, seeds),

@@ -1,8 +1,7 @@
 """The components of :class:`~sb3_taskalloc.TAMPolicy` chosen by name: its encoder (the scorer of the pre-assign actor
 and of each per-entity critic) and its stage-1 critic's mixer. The ablations of the paper's table are the names other
-than the defaults: ``encoder="mlp"`` (W/o TAM) and ``mixer="global"`` (W/o AMIX); ``mixer="future"`` is the critic
-Q = P + F (:class:`~sb3_taskalloc.common.policies.FutureCritic`), which learns only the future, for the ``value_top``
-decoder. A component is built from the policy (its sizes and settings) and declares whether it is ``size_agnostic``.
+than the defaults: ``encoder="mlp"`` (W/o TAM) and ``mixer="global"`` (W/o AMIX). A component is built from the
+policy (its sizes and settings) and declares whether it is ``size_agnostic``.
 """
 
 from __future__ import annotations
@@ -12,8 +11,8 @@ from typing import Any
 
 from torch import nn
 
-from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, LinearAMIXMixer, TeamValue
-from sb3_taskalloc.common.policies import AMIXCritic, FutureCritic, GlobalCritic
+from sb3_taskalloc.common.mixers import AMIXMixer, GlobalMixer, TeamValue
+from sb3_taskalloc.common.policies import AMIXCritic, GlobalCritic
 from sb3_taskalloc.common.torch_layers import FlatScorer, PairScorer
 
 
@@ -35,15 +34,6 @@ def _amix_critic(policy: Any) -> AMIXCritic:
     return AMIXCritic(policy._scorer(scale=1.0), mixer, team)  # critics unscaled: Q-values need no temperature
 
 
-def _future_critic(policy: Any) -> FutureCritic:
-    """The future critic's F (implementation detail 24): AMIX made linear in the per-entity values, without the team
-    value (P, computed exactly, already tells a covering team from one that falls short); ``mixer_kwargs`` sets only
-    its ``hyper_bias``."""
-    _, _, Fe, Ft, _ = policy.dims
-    mixer = LinearAMIXMixer(Fe, Ft, policy.hidden_dim, policy.mixer_kwargs["hyper_bias"], policy.activation_fn)
-    return FutureCritic(policy._scorer(scale=1.0), mixer)
-
-
 def _global_critic(policy: Any) -> GlobalCritic:
     N, M, Fe, Ft, _ = policy.dims
     return GlobalCritic(GlobalMixer(N, M, Fe, Ft, policy.hidden_dim, policy.activation_fn))
@@ -52,8 +42,4 @@ def _global_critic(policy: Any) -> GlobalCritic:
 #: ``encoder`` name -> the scorer of the actor and of each per-entity critic (built with the actor's or critic's scale).
 ENCODERS: dict[str, Callable[[Any, float], nn.Module]] = {"tam": _tam_scorer, "mlp": _flat_scorer}
 #: ``mixer`` name -> one stage-1 critic.
-MIXERS: dict[str, Callable[[Any], AMIXCritic | GlobalCritic]] = {
-    "amix": _amix_critic,
-    "future": _future_critic,
-    "global": _global_critic,
-}
+MIXERS: dict[str, Callable[[Any], AMIXCritic | GlobalCritic]] = {"amix": _amix_critic, "global": _global_critic}

@@ -191,8 +191,8 @@ class ExactTopDecoder(ExactCoversDecoder):
 
     With ``surcharge`` σ > 0 each pair costs (1 + σ)·c in the round's solve and in weighing its teams: the opportunity
     cost of committing an entity now, which the per-step objective leaves out (an entity sent on a trip is missing from
-    the tasks that appear while it travels). σ = 0.08 gains over σ = 0 on RBF and MT as much as the future critic's
-    learned pair values did (docs/learning.md, "Is value_top's gain a uniform surcharge").
+    the tasks that appear while it travels). σ = 0.08 gains over σ = 0 on RBF and MT as much as a critic's learned
+    per-pair future values did (docs/learning.md, "Is `value_top`'s gain a uniform surcharge on the pair costs?").
     """
 
     name = "exact_top"
@@ -207,7 +207,7 @@ class ExactTopDecoder(ExactCoversDecoder):
     def config(self) -> dict[str, Any]:
         return {"top": self.top, "surcharge": self.surcharge, "seed": self.seed}
 
-    def costed(self, policy: TAMPolicy, view: ObsView) -> ObsView:
+    def costed(self, view: ObsView) -> ObsView:
         """The view whose pair costs the round's solve and the weighing of its teams read: ``view`` itself without a
         surcharge (the same object), else each pair's cost raised by it."""
         return view if self.surcharge == 0.0 else view._replace(pair_cost=view.pair_cost + self.surcharge * view.pair_cost)
@@ -220,14 +220,14 @@ class ExactTopDecoder(ExactCoversDecoder):
         # first column is the argmax and top = 1 keeps the argmax's own tasks (topk's order among ties is unspecified).
         order = th.sort(dist.logits, dim=-1, descending=True, stable=True).indices
         chosen = th.zeros_like(view.valid).scatter_(-1, order[..., : min(self.top, M)], True)
-        covers = exact_covers(self.costed(policy, view), chosen & view.valid & view.assignable.unsqueeze(-1))
+        covers = exact_covers(self.costed(view), chosen & view.valid & view.assignable.unsqueeze(-1))
         argmax = th.where(view.assignable, order[..., 0], -1)
         tasks = th.arange(M, device=argmax.device).view(1, M, 1)
         return covers, (argmax.unsqueeze(1) == tasks).any(-1)
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         head = policy.selector.head
-        costed = self.costed(policy, view)
+        costed = self.costed(view)
         if costed is view:
             # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so
             # the exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
@@ -242,63 +242,6 @@ class ExactTopDecoder(ExactCoversDecoder):
         p0 = base.kept() * (view.reward - (members * costed.pair_cost.transpose(1, 2)).sum(-1))
         found = cover_search(head, costed, task_of, against=SelectSearchResult(base.rank, p0, p0), members=task_of)
         return found.rank, found.profit > 0
-
-
-@register_decoder
-class ValueTopDecoder(ExactTopDecoder):
-    """``exact_top`` on the objective P + F of the future critic (``TAMPolicy(mixer="future")``): each pair's cost is
-    lowered by its learned future value g_ij = ∂F/∂a_ij (:func:`future_pair_values`; F is linear in the assignment),
-    so each round's exact cover maximises this step's profit plus what the assignment leaves for later, as NeurADP's
-    ILP adds per-vehicle values to its scores. Teams are weighed by the same objective: the pointer's argmax team
-    against its decode on the lowered costs, among the cover's members. With F = 0 it is ``exact_top`` of the same
-    ``top`` (implementation detail 25).
-    """
-
-    name = "value_top"
-
-    def __init__(self, top: int = 2, seed: int = 0) -> None:
-        super().__init__(top, seed=seed)
-        self._adjusted: tuple[TAMPolicy, ObsView, ObsView] | None = None  # the round's policy, view and value-aware view
-
-    @property
-    def config(self) -> dict[str, Any]:
-        return {"top": self.top, "seed": self.seed}
-
-    def costed(self, policy: TAMPolicy, view: ObsView) -> ObsView:
-        """:func:`value_aware_view` of ``view``, computed once per round: a round's teams read the view its
-        pre-assignment read (the same object), and F's gradient is the decoder's largest cost after the solves."""
-        if self._adjusted is None or self._adjusted[0] is not policy or self._adjusted[1] is not view:
-            self._adjusted = (policy, view, value_aware_view(policy, view))
-        return self._adjusted[2]
-
-    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        try:
-            return super().teams(policy, view, task_of)
-        finally:  # the teams release the round's value-aware view: the decoder holds no policy or state between rounds
-            self._adjusted = None
-
-
-def future_pair_values(policy: TAMPolicy, view: ObsView) -> th.Tensor:
-    """(B, N, M) g_ij = ∂ min_k F^k(s, a)/∂a_ij at a = 0 (every entity left free): what sending entity i to task j adds
-    to the future critics' value (:class:`~sb3_taskalloc.common.policies.FutureCritic`), 0 on invalid pairs. Each F^k
-    is linear in a, so g is each critic's exact per-pair value (of the critic that is lower with every entity free)."""
-    critic = policy.critic
-    if critic is None or not critic.learns_future:
-        raise ValueError("the value_top decoder needs the future critic: train with TAMPolicy(mixer='future')")
-    with th.inference_mode(False), th.enable_grad():
-        state = ObsView(*(x.clone() for x in view))  # decisions run in inference mode; autograd needs plain tensors
-        assign = th.zeros_like(state.pair_cost, requires_grad=True)
-        contexts = [ctx.detach() for ctx in critic.contexts(state)]
-        future = th.stack(critic.mix(contexts, assign), 0).min(0).values
-        (grad,) = th.autograd.grad(future.sum(), assign)
-    return grad.detach() * view.valid
-
-
-def value_aware_view(policy: TAMPolicy, view: ObsView) -> ObsView:
-    """``view`` with each valid pair's cost lowered by its future value (:func:`future_pair_values`), at least 0: the
-    exact solvers maximise reward − cost, so this makes them maximise P + F (a pair whose future value exceeds its cost
-    costs nothing rather than paying, which keeps the team searches' bounds valid)."""
-    return view._replace(pair_cost=(view.pair_cost - future_pair_values(policy, view)).clamp_min(0.0))
 
 
 class DecodingMixin:
@@ -352,10 +295,8 @@ def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:
         raise ValueError(f"decoding strategy {name!r}: {error}") from None
 
 
-#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up; and the
-#: argmax at both stages, by which the future critic's target decides whatever decoder a user set.
+#: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up.
 SAMPLED, UNIFORM = get_decoding_strategy("sampled"), get_decoding_strategy("uniform")
-ARGMAX = get_decoding_strategy("argmax")
 
 
 def decide_preassigned(

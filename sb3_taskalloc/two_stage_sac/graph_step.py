@@ -51,7 +51,7 @@ class CUDAGraphStep(GradientStep):
     to rounding (``tests/test_traced.py``); the team search draws its samples from the graph's own offsets of the CUDA
     random stream, so its teams are not the eager step's.
 
-    :param model: the algorithm; its updates must all be recordable (:attr:`.PreAssignUpdate.capturable`)
+    :param model: the algorithm
     """
 
     def __init__(self, model: TwoStageSAC) -> None:
@@ -153,19 +153,13 @@ def gradient_step(model: TwoStageSAC) -> GradientStep:
 
 def check_cuda_graph(model: TwoStageSAC) -> None:
     """A clear error where ``cuda_graph=True`` cannot record the step, on any device: a learning-rate schedule (the
-    graph records the optimizers' steps with one rate) or an update that asks the host mid-step."""
+    graph records the optimizers' steps with one rate)."""
     if not model.cuda_graph:
         return
     if callable(model.learning_rate):
         raise ValueError(
             "cuda_graph=True records the optimizers' steps with one learning rate: use a constant learning_rate, not "
             f"a schedule ({model.learning_rate!r}), or cuda_graph=False"
-        )
-    refused = [type(update).__name__ for update in model.updates if not update.capturable]
-    if refused:
-        raise ValueError(
-            f"cuda_graph=True cannot record {', '.join(refused)}: its target decodes pick by pick with host checks "
-            "(TAMPolicy(mixer='future')); use cuda_graph=False"
         )
 
 

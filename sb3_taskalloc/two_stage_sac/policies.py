@@ -45,8 +45,10 @@ HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embe
 #: Default (κ, κ_s) of a rule-initialised policy (implementation detail 10): sampled decisions stay near the rule's argmax.
 RULE_LOGIT_SCALES = (100.0, 10.0)
 
-#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them, the
-#: "future" one reads only ``hyper_bias``: it is linear and monotonic, with no team value).
+#: The last commit whose library held the future critic (``mixer="future"``) and the ``value_top`` decoder.
+FUTURE_CRITIC_COMMIT = "986c6cf"
+
+#: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
 MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
 
 
@@ -94,10 +96,8 @@ class TAMPolicy(BasePolicy):
     :param task_order: order of the tasks without pre-assignment: ``"sequential"`` (slot order, the default) or
         ``"random"``; only with ``preassign=False``
     :param encoder: ``"tam"`` (size-agnostic attention module) or ``"mlp"`` (the "W/o TAM" ablation, size-specific)
-    :param mixer: ``"amix"`` (the paper's), ``"future"`` (Q = P + F: the exact step profit plus AMIX-mixed values of the
-        executed assignment's future, :class:`~sb3_taskalloc.common.policies.FutureCritic`, read by the ``value_top``
-        decoder; trained with the pre-assign actor held) or ``"global"`` (the "W/o AMIX" ablation: one MLP over the
-        flattened state and c)
+    :param mixer: ``"amix"`` (the paper's) or ``"global"`` (the "W/o AMIX" ablation: one MLP over the flattened state
+        and c)
     :param mixer_kwargs: settings of the AMIX critic over :data:`MIXER_DEFAULTS`: ``monotonic`` (QMIX-style weights),
         ``hyper_bias`` (a state-dependent bias), ``team_value`` (implementation detail 1; ``False``: the paper's critic)
     :param logit_scale: κ, the pre-assign actor's logits are κ times its scores (its inverse temperature; the paper's
@@ -136,7 +136,7 @@ class TAMPolicy(BasePolicy):
         preassign: bool = True,
         task_order: Literal["sequential", "random"] | None = None,
         encoder: Literal["tam", "mlp"] = "tam",
-        mixer: Literal["amix", "future", "global"] = "amix",
+        mixer: Literal["amix", "global"] = "amix",
         mixer_kwargs: dict[str, bool] | None = None,
         logit_scale: float | None = None,
         select_logit_scale: float | None = None,
@@ -163,6 +163,12 @@ class TAMPolicy(BasePolicy):
             )
         task_order = task_order or "sequential"
         choices = {"task_order": (task_order, ("sequential", "random")), "encoder": (encoder, tuple(ENCODERS))}
+        if mixer == "future":
+            raise ValueError(
+                "mixer='future' (the critic Q = P + F read by the value_top decoder) was removed: a uniform surcharge on "
+                "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08) (docs/learning.md). A "
+                f"model saved with it loads with sb3_taskalloc at commit {FUTURE_CRITIC_COMMIT}"
+            )
         check_choices({**choices, "mixer": (mixer, tuple(MIXERS))})
         check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds))
         check_counts(dict(n_attention_layers=n_attention_layers), minimum=0)

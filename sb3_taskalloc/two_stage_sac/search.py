@@ -83,7 +83,7 @@ def select_search(
 EXACT_NODE_LIMIT = 1000
 EXACT_TIME_LIMIT = 30.0
 # Nodes of :func:`task_by_task_cover`'s search over shared entities before a batch row goes to one HiGHS solve: on 54 of
-# value_top's first-round covers of RBF (top 2) 32 finish within 8 nodes, and a larger limit costs the rows that still
+# the value-aware first-round covers of RBF (top 2) 32 finished within 8 nodes, and a larger limit costs the rows that still
 # go to HiGHS more than it saves (docs/benchmarks.md, "The task-by-task cover search").
 SHARED_NODE_LIMIT = 8
 

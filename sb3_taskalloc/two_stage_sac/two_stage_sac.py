@@ -66,8 +66,7 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
     :param warmup_exploration: the warm-up's decisions: ``"uniform"`` (SB3's random warm-up) or ``"policy"`` (detail 8)
     :param train_preassign_actor: whether stage 1 learns: the pre-assign actor, its temperature and the AMIX critics
         that train it. ``False`` holds the actor at its initial rule while the select stage learns, and its critics,
-        which nothing else reads, do not train (implementation detail 23), except the future critic
-        (``policy_kwargs={"mixer": "future"}``, which needs ``False``), read by the ``value_top`` decoder
+        which nothing else reads, do not train (implementation detail 23)
     :param prior_coef: weight β of KL(π ‖ π₀) in the pre-assign actor's loss, π₀ its initial rule (detail 12)
     :param select_kwargs: the select stage's settings over :data:`~sb3_taskalloc.two_stage_sac.updates.SELECT_DEFAULTS`
     :param target_update_interval: target network update interval (gradient steps)

@@ -1,8 +1,7 @@
 """One gradient step of each stage of :class:`~sb3_taskalloc.TwoStageSAC`, in SAC's order: target → critic → actor →
 temperature (the target networks follow in ``train``). The algorithm holds one update per stage it trains
 (:func:`preassign_update` chooses stage 1's): none for the pre-assignment of a policy without it ("W/o Pre") or where
-the pre-assign actor is held at its rule (``train_preassign_actor=False``), except the future critic's, which the
-``value_top`` decoder reads with the actor held.
+the pre-assign actor is held at its rule (``train_preassign_actor=False``).
 
 Equations and numbers refer to the paper and to the implementation details of :mod:`sb3_taskalloc.two_stage_sac`.
 """
@@ -17,14 +16,13 @@ from torch.nn import functional as F
 
 import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
-from sb3_taskalloc.common.policies import CriticContext, executed_assignment, executed_profit
+from sb3_taskalloc.common.policies import CriticContext
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import (
     DivergenceError,
     check_finite_parameters,
     foreach_polyak_update,
 )
-from sb3_taskalloc.two_stage_sac.decoding import ARGMAX, decide_preassigned
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
@@ -112,9 +110,6 @@ class PreAssignUpdate:
         selected), as a CUDA graph records them (:mod:`.graph_step`)
     """
 
-    #: Whether a CUDA graph can record this update (:mod:`.graph_step`).
-    capturable = True
-
     def __init__(self, model: TwoStageSAC, padded: bool = False) -> None:
         self.model, self.padded = model, padded
 
@@ -172,64 +167,11 @@ class PreAssignUpdate:
         foreach_polyak_update(m.critic.parameters(), m.critic_target.parameters(), m.tau)
 
 
-class FutureCriticUpdate(PreAssignUpdate):
-    """Stage 1 with the critic Q(s, a) = P(s, a) + F(s, a) (``mixer="future"``,
-    :class:`~sb3_taskalloc.common.policies.FutureCritic`) and the pre-assign actor held at its rule: the exact profit P
-    of the teams a decision sends is computed, and the critics learn only F, the value of what the executed assignment
-    leaves for later, which the ``value_top`` decoder adds to each pair's profit (implementation detail 24).
-
-    F^k(s, a) → y − P(s, a) with y = r + γ(1 − d)·[P(s′, a′) + min_k F̄^k(s′, a′)], where a is the executed
-    (post-select) assignment and a′ the argmax decision at s′: F is the future of the decisions the model deploys, so
-    its target carries no entropy bonus. With the commitment reward r − P(s, a) is what the step settles of earlier
-    decisions (a team's decay during travel), 0 on most steps.
-
-    Its target decodes the argmax decision at s′ pick by pick, asking the host when to stop: no CUDA graph records it.
-    """
-
-    capturable = False
-
-    def critic_loss(
-        self, obs: ObsView, next_obs: ObsView, data: TwoStageReplayBufferSamples, alpha: th.Tensor
-    ) -> PreAssignCriticLoss:
-        m = self.model
-        assert m.critic is not None and m.critic_target is not None
-        rewards, dones = data.rewards.squeeze(-1), data.dones.squeeze(-1)
-        gamma = m.gamma if data.discounts is None else data.discounts.squeeze(-1)  # γ^k of an n-step return
-        actions = data.actions.long()
-        profit = executed_profit(obs, actions)
-        # y − P(s, a) = r − P(s, a) + γ(1 − d)·[P(s′, a′) + min_k F̄^k(s′, a′)], a′ the argmax decision at s′
-        with th.no_grad():
-            nxt = decide_preassigned(m.policy, next_obs, ARGMAX)
-            next_q = th.stack(m.critic_target.decision_values(next_obs, nxt.candidates, nxt.env_action), 0).min(0).values
-            target_f = rewards - profit + (1 - dones) * gamma * next_q
-        # ½ Σ_k (F^k(s, a) − (y − P))²; the critics' Q(s, a) is P + F
-        contexts = m.critic.contexts(obs)
-        future = m.critic.mix(contexts, executed_assignment(actions, obs.reward.shape[1]))
-        loss = 0.5 * sum(F.mse_loss(f, target_f) for f in future)
-        return PreAssignCriticLoss(loss, target_f + profit, tuple(f + profit for f in future), contexts)  # type: ignore[arg-type]
-
-    def __call__(self, obs: ObsView, data: TwoStageReplayBufferSamples, logs: Logs) -> None:
-        m = self.model
-        critic = self.critic_loss(
-            obs, m.policy.parse(data.next_observations), data, temperature(m.log_ent_coef, m.ent_coef_tensor)
-        )
-        logs["critic_loss"].append(optimizer_step(m.critic.optimizer, critic.loss))  # type: ignore[union-attr]
-
-
 def preassign_update(model: TwoStageSAC) -> PreAssignUpdate | None:
-    """Stage 1's update: the paper's (AMIX critics, actor, temperature) where the pre-assign actor learns; the future
-    critic's alone where the actor is held and its critic is ``mixer="future"``; none otherwise ("W/o Pre", or a held
-    actor whose AMIX critics no decision reads: detail 23)."""
+    """Stage 1's update: the paper's (AMIX critics, actor, temperature) where the pre-assign actor learns; none
+    otherwise ("W/o Pre", or a held actor whose AMIX critics no decision reads: detail 23)."""
     if model.actor is None:
         return None
-    if model.policy.mixer == "future":
-        if model.train_preassign_actor:
-            raise ValueError(
-                "TAMPolicy(mixer='future') trains its critic with the pre-assign actor held at its rule: set "
-                "train_preassign_actor=False (the critic's value P + F is read by the value_top decoder; an actor "
-                "trained on it gained nothing, docs/learning.md)"
-            )
-        return FutureCriticUpdate(model)
     return PreAssignUpdate(model) if model.train_preassign_actor else None
 
 
@@ -243,8 +185,6 @@ class SelectUpdate:
         fixed-length loop: the same losses up to rounding, with fixed shapes and no host read, as a CUDA graph records
         them (:mod:`.graph_step`)
     """
-
-    capturable = True
 
     def __init__(self, model: TwoStageSAC, padded: bool = False) -> None:
         self.model, self.padded = model, padded
