@@ -235,7 +235,25 @@ def test_the_surcharge_raises_every_pair_cost_in_exact_tops_objective(mt_model: 
 def test_the_removed_future_critic_is_named_with_its_replacement():
     """``mixer="future"`` and its ``value_top`` decoder left the library: the error says what decides as well and
     which commit still loads such a model."""
-    with pytest.raises(ValueError, match=r"mixer='future'.*surcharge=0\.08.*commit [0-9a-f]{7}"):
+    with pytest.raises(
+        ValueError,
+        match=r"mixer='future'.*surcharge=0\.08.*last commit with it is [0-9a-f]{7}\. A model saved with it still loads",
+    ):
         TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0", policy_kwargs={"mixer": "future"}, device="cpu")
     with pytest.raises(ValueError, match="unknown decoding strategy 'value_top'"):
         get_decoding_strategy("value_top")
+
+
+def test_a_model_saved_with_the_removed_future_critic_loads_and_decides_as_before():
+    """A model trained with ``mixer="future"`` (``tests/data/make_future_critic_fixture.py``, commit 986c6cf) loads with
+    a warning, its critic as the monotonic AMIX critic whose parameters it has, and decides as it did: by the argmax and
+    by the surcharge its user is told to decode with. It trains on."""
+    with pytest.warns(UserWarning, match=r"future critic \(mixer='future'\).*surcharge=0\.08"):
+        model = TwoStageSAC.load(DATA / "future_critic_mt.zip", env=gym.make("TaskAlloc/MT-v0"), device="cpu")
+    assert model.policy.mixer == "amix" and model.policy.mixer_kwargs["monotonic"] is True
+    saved = dict(np.load(DATA / "future_critic_decisions.npz"))
+    assert np.array_equal(model.predict(_obs(saved), deterministic=True)[0], saved["action_argmax"])
+    with model.decoding("exact_top", top=2, surcharge=0.08):
+        assert np.array_equal(model.predict(_obs(saved), deterministic=True)[0], saved["action_exact_top_surcharge"])
+    model.learn(20)
+    assert model._n_updates == 20

@@ -6,6 +6,9 @@ earlier) load unchanged: their settings are converted to today's, with a warning
   ``select_decision_exact`` → ``"team_search"``, ``decision_exact_top`` → ``"exact_top"``.
 - The AMIX settings ``monotonic_mixer``, ``hyper_bias`` and ``team_value`` move into ``mixer_kwargs``; the select
   stage's ``select_*`` settings of the algorithm into ``select_kwargs``.
+- The future critic (``mixer="future"``, removed after commit 986c6cf) has the parameters of a monotonic AMIX critic
+  without a team value, and loads as one: its pre-assign actor was held, so no decision read the critic, and the model
+  decides as it did.
 - Training terms that were removed (their verdicts are in ``docs/learning.md``) are dropped: a loaded model decides as
   it did, and further training runs without them. Pointer architectures that were removed cannot load (their weights
   have no place in today's networks); the error names the commit that still has them.
@@ -149,6 +152,15 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
     for key in removed:
         del policy_kwargs[key]
     decoder = decoder_of(policy_kwargs)
+    if policy_kwargs.get("mixer") == "future":
+        policy_kwargs["mixer"] = "amix"
+        policy_kwargs["mixer_kwargs"] = {**policy_kwargs.get("mixer_kwargs", {}), "monotonic": True, "team_value": False}
+        warnings.warn(
+            "this model was trained with the future critic (mixer='future'), removed from sb3_taskalloc: its critic "
+            "loads as an AMIX critic, which no decision reads with its actor held, so it decides as before; decode it "
+            "with set_decoder('exact_top', top=2, surcharge=0.08) where it used value_top (docs/learning.md)",
+            stacklevel=3,
+        )
     mixer = {new: policy_kwargs.pop(old) for old, new in MIXER_KEYS.items() if old in policy_kwargs}
     if mixer:
         policy_kwargs["mixer_kwargs"] = {**policy_kwargs.get("mixer_kwargs", {}), **mixer}

@@ -166,8 +166,8 @@ class TAMPolicy(BasePolicy):
         if mixer == "future":
             raise ValueError(
                 "mixer='future' (the critic Q = P + F read by the value_top decoder) was removed: a uniform surcharge on "
-                "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08) (docs/learning.md). A "
-                f"model saved with it loads with sb3_taskalloc at commit {FUTURE_CRITIC_COMMIT}"
+                "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08) (docs/learning.md); the "
+                f"last commit with it is {FUTURE_CRITIC_COMMIT}. A model saved with it still loads"
             )
         check_choices({**choices, "mixer": (mixer, tuple(MIXERS))})
         check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds))
