@@ -42,7 +42,8 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
         names = {"TAMPolicy trained", "TAMPolicy untrained", f"TAMPolicy trained, search of {bench.SEARCH}", "Greedy",
                  f"TAMPolicy trained, team search of {bench.TEAM_SEARCH}", "TAMPolicy trained, exact covers",
                  "TAMPolicy trained, exact pre-assignment among each entity's top task",
-                 "TAMPolicy trained, exact pre-assignment among each entity's top 2 tasks"}  # fmt: skip
+                 "TAMPolicy trained, exact pre-assignment among each entity's top 2 tasks",
+                 "TAMPolicy trained, exact pre-assignment among each entity's top 2 tasks, 8 % surcharge"}  # fmt: skip
         assert {row["policy"] for row in episodes} == names
         assert all(row["states"] >= 25 and 0 < row["median_ms"] <= row["p90_ms"] for row in episodes)  # --quick: every 4th
         rows = [row for row in rows if "states" not in row]
