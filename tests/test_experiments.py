@@ -761,6 +761,10 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch,
     exact = run.reevaluate(decoder="exact_covers")
     assert len(solved) > 0
     assert exact.name == "EPT_decoder_exact_covers.md" and "--decoder exact_covers`" in exact.read_text()
+    # a setting with a decimal point names its report whole (Path.with_suffix would cut it at the dot)
+    cooled = run.reevaluate(decoder="preassign_search", decoder_kwargs={"samples": 2, "temperature": 1.5})
+    assert cooled.name == "EPT_decoder_preassign_search_samples_2_temperature_1.5.md"
+    assert json.loads(cooled.with_name(cooled.stem + ".json").read_text())["decoder"].endswith("temperature=1.5)")
     with pytest.raises(ValueError, match="unknown decoding strategy"):
         run.reevaluate(decoder="beam")
     monkeypatch.setattr("sb3_taskalloc.TwoStageSAC", lambda *a, **k: pytest.fail("a finished seed was trained again"))

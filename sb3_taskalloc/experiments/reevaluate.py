@@ -72,7 +72,7 @@ def reevaluate(
     if more_episodes and (shift or decoder != "argmax"):
         raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no decoder")
     suffix, how, flags = _reevaluation_labels(shift, decoder, config, more_episodes)
-    stem = Path(run.out) / (run.env + suffix)
+    stem = Path(run.out) / (run.env + suffix)  # a setting's number may hold a dot: the suffixes are appended, not replaced
     rows: list[dict[str, Any]] = []
     for seed in run.seed_range:
         path = run.seed_path(seed).with_suffix(".zip")
@@ -107,11 +107,11 @@ def reevaluate(
         atomic_write_text(done, json.dumps(row) + "\n")
         rows.append(row)
     settings = {"settings": run.describe(), "env": env_id, "decoder": repr(strategy), "seeds": rows}
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(settings))
+    atomic_write_text(stem.with_name(stem.name + ".json"), json.dumps(settings))
     title = f"# {env_id}: {how}, the models of `{run.env}.md` ({run.steps:,} steps on {run.env_id})"
     lines = [title, "", f"Command: `{run.command()}{flags}`", *report_lines(rows, with_milp=not (shift or more_episodes))]
     lines += over_all_episodes(run, rows) if more_episodes else []
-    return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+    return atomic_write_text(stem.with_name(stem.name + ".md"), "\n".join(lines) + "\n")
 
 
 def report_lines(rows: list[dict[str, Any]], with_milp: bool) -> list[str]:
