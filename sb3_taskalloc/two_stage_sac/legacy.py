@@ -6,9 +6,9 @@ earlier) load unchanged: their settings are converted to today's, with a warning
   ``select_decision_exact`` → ``"team_search"``, ``decision_exact_top`` → ``"exact_top"``.
 - The AMIX settings ``monotonic_mixer``, ``hyper_bias`` and ``team_value`` move into ``mixer_kwargs``; the select
   stage's ``select_*`` settings of the algorithm into ``select_kwargs``.
-- The future critic (``mixer="future"``, removed after commit 986c6cf) has the parameters of a monotonic AMIX critic
-  without a team value, and loads as one: its pre-assign actor was held, so no decision read the critic, and the model
-  decides as it did.
+- The future critic (``mixer="future"``, removed after :data:`FUTURE_CRITIC_COMMIT`) has the parameters of a
+  monotonic AMIX critic without a team value, and loads as one: its pre-assign actor was held, so no decision read the
+  critic, and the model decides as it did.
 - Training terms that were removed (their verdicts are in ``docs/learning.md``) are dropped: a loaded model decides as
   it did, and further training runs without them. Pointer architectures that were removed cannot load (their weights
   have no place in today's networks); the error names the commit that still has them.
@@ -51,6 +51,8 @@ REMOVED_COMPANIONS = (
     "counterfactual_buffer",
     "_branched",
 )
+#: The last commit whose library held the future critic (``mixer="future"``) and the ``value_top`` decoder.
+FUTURE_CRITIC_COMMIT = "986c6cf"
 #: Removed pointer architectures (policy keyword -> its value when off).
 REMOVED_ARCHITECTURES: dict[str, Any] = {"select_pair_hidden": 0, "select_scarcity": False}
 #: TAMPolicy keywords that moved into ``mixer_kwargs`` (old name -> new key).
@@ -75,10 +77,16 @@ _DECODER_KEYS = (
 
 
 def check_policy_kwargs(policy_class: type[Any], policy_kwargs: dict[str, Any]) -> None:
-    """A clear error for a ``policy_kwargs`` key that ``policy_class`` does not take, naming where a moved or removed
-    option went."""
+    """A clear error for a ``policy_kwargs`` key that ``policy_class`` does not take, or a removed mixer, naming where a
+    moved or removed option went."""
     import inspect
 
+    if policy_kwargs.get("mixer") == "future":
+        raise ValueError(
+            "mixer='future' (the critic Q = P + F read by the value_top decoder) was removed: a uniform surcharge on "
+            "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08) (docs/learning.md); the "
+            f"last commit with it is {FUTURE_CRITIC_COMMIT}. A model saved with it still loads"
+        )
     accepted = set(inspect.signature(policy_class.__init__).parameters)
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in inspect.signature(policy_class.__init__).parameters.values()):
         return

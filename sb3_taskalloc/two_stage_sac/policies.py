@@ -45,9 +45,6 @@ HEURISTIC_INIT: dict[str, float] = {"pair_cost": -3.0, "unit_cost": -10.0, "embe
 #: Default (κ, κ_s) of a rule-initialised policy (implementation detail 10): sampled decisions stay near the rule's argmax.
 RULE_LOGIT_SCALES = (100.0, 10.0)
 
-#: The last commit whose library held the future critic (``mixer="future"``) and the ``value_top`` decoder.
-FUTURE_CRITIC_COMMIT = "986c6cf"
-
 #: Settings of TAMPolicy's ``mixer_kwargs`` and their defaults (the AMIX critic; the "global" mixer ignores them).
 MIXER_DEFAULTS: dict[str, bool] = {"monotonic": False, "hyper_bias": True, "team_value": True}
 
@@ -163,12 +160,6 @@ class TAMPolicy(BasePolicy):
             )
         task_order = task_order or "sequential"
         choices = {"task_order": (task_order, ("sequential", "random")), "encoder": (encoder, tuple(ENCODERS))}
-        if mixer == "future":
-            raise ValueError(
-                "mixer='future' (the critic Q = P + F read by the value_top decoder) was removed: a uniform surcharge on "
-                "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08) (docs/learning.md); the "
-                f"last commit with it is {FUTURE_CRITIC_COMMIT}. A model saved with it still loads"
-            )
         check_choices({**choices, "mixer": (mixer, tuple(MIXERS))})
         check_counts(dict(hidden_dim=hidden_dim, n_critics=n_critics, rounds=rounds))
         check_counts(dict(n_attention_layers=n_attention_layers), minimum=0)
