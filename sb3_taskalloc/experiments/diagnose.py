@@ -135,12 +135,12 @@ class Diagnosis:
 
 
 def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[str, Any]:
-    """One episode of the model's two-stage decisions: observations, candidate sets, env actions, env rewards,
+    """One episode of the model's two-stage decisions: observations, candidate sets, kept tasks, env rewards,
     commitment rewards (``info["commitment_reward"]``, NaN where the env does not report it) and whether it ended by
     termination."""
     policy = model.policy
     obs, _ = env.reset(seed=seed)
-    observations, candidates, actions, kept, rewards, credits = [], [], [], [], [], []
+    observations, candidates, kept, rewards, credits = [], [], [], [], []
     done = False
     while not done:
         with th.inference_mode():
@@ -148,7 +148,6 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
             decision = policy.decide(view, deterministic=deterministic)
         observations.append(obs)
         candidates.append(decision.candidates[0].cpu().numpy())
-        actions.append(decision.env_action[0].cpu().numpy())
         kept.append(decision.kept[0].cpu().numpy())
         obs, reward, terminated, truncated, info = env.step(decision.env_action[0].cpu().numpy())
         rewards.append(float(reward))
@@ -158,7 +157,6 @@ def _episode(model: Any, env: gym.Env, seed: int, deterministic: bool) -> dict[s
     return {
         "obs": observations,
         "candidates": candidates,
-        "actions": actions,
         "kept": kept,
         "rewards": np.asarray(rewards),
         "commitment": np.asarray(credits),
