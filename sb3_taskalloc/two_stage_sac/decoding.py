@@ -210,7 +210,7 @@ class ExactTopDecoder(ExactCoversDecoder):
 
     def costed(self, view: ObsView) -> ObsView:
         """The view whose pair costs the round's solve and the weighing of its teams read: ``view`` itself without a
-        surcharge (the same object), else each pair's cost raised by it."""
+        surcharge, else each pair's cost raised by it."""
         return view if self.surcharge == 0.0 else view._replace(pair_cost=view.pair_cost + self.surcharge * view.pair_cost)
 
     def preassign(
@@ -228,8 +228,7 @@ class ExactTopDecoder(ExactCoversDecoder):
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         head = policy.selector.head
-        costed = self.costed(view)
-        if costed is view:
+        if self.surcharge == 0.0:
             # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so
             # the exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
             # pointer's argmax among them (the exact cover's decode is that same decode). Only a HiGHS row stopped at its
@@ -238,6 +237,7 @@ class ExactTopDecoder(ExactCoversDecoder):
             return found.rank, found.profit > 0
         # On other costs than the pointer's, the pointer's argmax team (decoded on the costs it was trained on) is weighed
         # by the round's objective against the exact cover among the candidates, which the round's solve already chose.
+        costed = self.costed(view)
         base = decode_round(head, view, task_of, deterministic=True)
         members = (base.rank >= 0).float()  # (B, M, N)
         p0 = base.kept() * (view.reward - (members * costed.pair_cost.transpose(1, 2)).sum(-1))
