@@ -20,10 +20,10 @@ from typing import Any
 
 from sb3_taskalloc.experiments.bench.common import BenchFn, machine
 from sb3_taskalloc.experiments.bench.envs import bench_baselines, bench_envs
-from sb3_taskalloc.experiments.bench.policy import SEARCH, TEAM_SEARCH, bench_labels, bench_policy
+from sb3_taskalloc.experiments.bench.policy import MT_DECODER, SEARCH, TEAM_SEARCH, bench_labels, bench_policy
 from sb3_taskalloc.experiments.bench.training import LEARN_TARGET, bench_learn, bench_train, bench_zoo
 
-__all__ = ["LEARN_TARGET", "SEARCH", "TEAM_SEARCH", "main"]
+__all__ = ["LEARN_TARGET", "MT_DECODER", "SEARCH", "TEAM_SEARCH", "main"]
 
 
 BENCHES: dict[str, BenchFn] = {

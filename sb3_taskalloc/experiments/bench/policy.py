@@ -42,6 +42,40 @@ DECODER_ROWS: tuple[tuple[str, dict[str, Any], str], ...] = (
     ("exact_top", {"top": 2, "surcharge": 0.08}, ", exact pre-assignment among each entity's top 2 tasks, 8 % surcharge"),
 )
 
+#: MT's recommended decoder (docs/options.md): every pair, each pair's cost raised 64 %.
+MT_DECODER: tuple[str, dict[str, Any], str] = (
+    "exact_top", {"top": 10, "surcharge": 0.64}, ", exact pre-assignment among every pair, 64 % surcharge"
+)  # fmt: skip
+
+
+def bench_policy_mt(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Decision latency of MT's recommended decoder over the states of seeded MT episodes it plays, on the CPU, beside
+    the argmax over the same states. The policy is untrained: with the pre-assign actor held at its rule, as in MT's
+    zoo block, ``exact_top`` decides alike with a trained and an untrained policy (docs/learning.md)."""
+    import gymnasium as gym
+    import torch as th
+
+    from sb3_taskalloc import TwoStageSAC
+
+    env_id = "TaskAlloc/MT-v0"
+    th.manual_seed(0)
+    model = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
+    decoder, config, words = MT_DECODER
+    if args.quick:  # a smoke run: half the states of an episode the argmax plays, as on RBF
+        states = episode_states(model, env_id, [30_000])
+        states = states[len(states) // 2 :: 2]
+    else:
+        with model.decoding(decoder, **config):
+            states = episode_states(model, env_id, [30_000, 30_001, 30_002])
+    rows = []
+    for name, kwargs, label in (("argmax", {}, ""), (decoder, config, words)):
+        with model.decoding(name, **kwargs):
+            ms = state_latencies_ms(model, states)
+        rows.append({"device": "cpu", "env": env_id, "policy": f"TAMPolicy untrained{label}",
+                     "decoder": name, "states": len(states), "median_ms": float(np.median(ms)),
+                     "p90_ms": float(np.percentile(ms, 90)), "mean_ms": float(np.mean(ms))})  # fmt: skip
+    return rows
+
 
 def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[dict[str, Any]]:
     """Decision latency over the states of seeded RBF episodes (median and p90) of a trained model (``--model``, or
@@ -70,13 +104,13 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
             with agent.decoding(decoder, **config):
                 ms = state_latencies_ms(agent, states, device)
             rows.append(
-                {"device": device, "policy": f"TAMPolicy {name}{words}", "decoder": decoder,
+                {"device": device, "env": env_id, "policy": f"TAMPolicy {name}{words}", "decoder": decoder,
                  "states": len(states), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
                  "model": source if name == "trained" else None,
                  "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if decoder == "argmax" else None}
             )  # fmt: skip
     ms = state_latencies_ms(GreedyAllocator(), states)
-    rows.append({"device": "cpu", "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
+    rows.append({"device": "cpu", "env": env_id, "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
                  "p90_ms": float(np.percentile(ms, 90))})  # fmt: skip
     return rows
 
@@ -121,15 +155,16 @@ def bench_labels(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """TAMPolicy decision latency: over the states of seeded RBF episodes (:func:`bench_policy_episodes`), then on one
-    reset RBF observation, a batch of 256, and the N × M scaling table of reset states (CPU; CUDA when available)."""
+    """TAMPolicy decision latency: over the states of seeded RBF episodes (:func:`bench_policy_episodes`) and of MT
+    episodes with MT's recommended decoder (:func:`bench_policy_mt`), then on one reset RBF observation, a batch of
+    256, and the N × M scaling table of reset states (CPU; CUDA when available)."""
     import torch as th
     from stable_baselines3.common.utils import obs_as_tensor
 
     from sb3_taskalloc import TAMPolicy
 
     devices = bench_devices(args)
-    rows: list[dict[str, Any]] = bench_policy_episodes(args, devices)
+    rows: list[dict[str, Any]] = bench_policy_episodes(args, devices) + bench_policy_mt(args)
     sizes = [(100, 10)] + [(n, m) for n in (50, 100, 500, 1000) for m in (5, 10, 50)]
     if args.quick:
         sizes = [(100, 10), (50, 5)]
