@@ -15,7 +15,14 @@ from stable_baselines3.common.save_util import load_from_zip_file
 import envs  # noqa: F401  (registers the TaskAlloc ids)
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.two_stage_sac import search
-from sb3_taskalloc.two_stage_sac.decoding import DECODERS, Decoder, get_decoding_strategy, register_decoder
+from sb3_taskalloc.two_stage_sac.decoding import (
+    DECODERS,
+    Decoder,
+    get_decoding_strategy,
+    recommended_decoder,
+    register_decoder,
+)
+from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
 DATA = Path(__file__).parent / "data"
 #: Made by ``tests/data/make_legacy_fixtures.py`` at commit 632165d, with each option set as a TAMPolicy attribute.
@@ -110,6 +117,22 @@ def test_strategies_by_name_and_clear_errors():
     strategy = get_decoding_strategy("exact_top", top=3)
     assert get_decoding_strategy(strategy) is strategy
     assert get_decoding_strategy(type(strategy).name, **strategy.config).config == strategy.config
+
+
+def test_each_env_with_a_measured_decoder_gets_it_by_id(legacy):
+    """The recommended decoders are settings a model takes (the names and values of docs/options.md), and an env
+    without one is named in the error rather than given a guess."""
+    for env_id, (name, config) in RECOMMENDED_DECODERS.items():
+        gym.spec(env_id)  # a registered id
+        decoder = recommended_decoder(env_id)
+        assert type(decoder).name == name and {k: decoder.config[k] for k in config} == config
+    slots = gym.make("TaskAlloc/MT-v0").observation_space["task_mask"].shape[0]
+    assert recommended_decoder("TaskAlloc/MT-v0").config["top"] == slots  # every pair, as the per-step MILP
+    model, _ = legacy
+    model.set_decoder(recommended_decoder("TaskAlloc/MT-v0"))
+    assert model.policy.decoder.config["surcharge"] == 0.64
+    with pytest.raises(ValueError, match="no decoder was measured on 'TaskAlloc/EPT-v0'"):
+        recommended_decoder("TaskAlloc/EPT-v0")
 
 
 def test_a_new_strategy_is_one_registered_class(legacy):

@@ -27,6 +27,7 @@ from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search, exact_covers, sampled_search, select_search
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round, env_action_of
+from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
@@ -294,6 +295,18 @@ def get_decoding_strategy(name: str | Decoder, **config: Any) -> Decoder:
         return DECODERS[name](**config)
     except TypeError as error:
         raise ValueError(f"decoding strategy {name!r}: {error}") from None
+
+
+def recommended_decoder(env_id: str) -> Decoder:
+    """The best decoding measured on ``env_id`` (:data:`~sb3_taskalloc.two_stage_sac.settings.RECOMMENDED_DECODERS`),
+    e.g. ``model.set_decoder(recommended_decoder("TaskAlloc/MT-v0"))``."""
+    if env_id not in RECOMMENDED_DECODERS:
+        raise ValueError(
+            f"no decoder was measured on {env_id!r} (only on {sorted(RECOMMENDED_DECODERS)}): it decides by the argmax, "
+            "or choose a strategy by name"
+        )
+    name, config = RECOMMENDED_DECODERS[env_id]
+    return get_decoding_strategy(name, **config)
 
 
 #: Training's decisions: samples at both stages, or uniformly random valid choices during a uniform warm-up.

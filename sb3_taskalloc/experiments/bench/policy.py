@@ -5,12 +5,9 @@ from __future__ import annotations
 
 import argparse
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    pass
 
 from sb3_taskalloc.experiments.bench.common import (
     bench_devices,
@@ -21,6 +18,7 @@ from sb3_taskalloc.experiments.bench.common import (
     state_latencies_ms,
     sync,
 )
+from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
 #: Pre-assignments of the decision-time search row (the ``preassign_search`` decoder; implementation detail 16).
 SEARCH = 32
@@ -39,12 +37,12 @@ DECODER_ROWS: tuple[tuple[str, dict[str, Any], str], ...] = (
     ("exact_covers", {}, ", exact covers"),
     ("exact_top", {"top": 1}, ", exact pre-assignment among each entity's top task"),
     ("exact_top", {"top": 2}, ", exact pre-assignment among each entity's top 2 tasks"),
-    ("exact_top", {"top": 2, "surcharge": 0.08}, ", exact pre-assignment among each entity's top 2 tasks, 8 % surcharge"),
+    (*RECOMMENDED_DECODERS["TaskAlloc/RBF-v0"], ", exact pre-assignment among each entity's top 2 tasks, 8 % surcharge"),
 )
 
-#: MT's recommended decoder (docs/options.md): every pair, each pair's cost raised 64 %.
+#: MT's recommended decoder (every pair, each pair's cost raised 64 %), with the words it adds to the row's name.
 MT_DECODER: tuple[str, dict[str, Any], str] = (
-    "exact_top", {"top": 10, "surcharge": 0.64}, ", exact pre-assignment among every pair, 64 % surcharge"
+    *RECOMMENDED_DECODERS["TaskAlloc/MT-v0"], ", exact pre-assignment among every pair, 64 % surcharge"
 )  # fmt: skip
 
 
