@@ -33,7 +33,8 @@ PAPER_KWARGS: dict[str, Any] = {
 #: Each env's best deployment decoding measured, as (strategy name, its settings) for ``model.set_decoder(name,
 #: **settings)`` or :func:`~sb3_taskalloc.two_stage_sac.decoding.recommended_decoder`: the exact pre-assignment with
 #: each pair's cost raised by the surcharge (implementation detail 25), chosen on training seeds and reported on others
-#: (docs/learning.md, "The surcharge's size"). Other envs have none measured and decide by the argmax.
+#: (docs/learning.md, "The surcharge's size"). Other envs decide by the argmax (on EPT the exact decoders measured no
+#: better).
 RECOMMENDED_DECODERS: dict[str, tuple[str, dict[str, Any]]] = {
     "TaskAlloc/RBF-v0": ("exact_top", {"top": 2, "surcharge": 0.08}),  # 1.07 × the per-step MILP, 16–38 ms median
     "TaskAlloc/MT-v0": ("exact_top", {"top": 10, "surcharge": 0.64}),  # 1.14 × the per-step MILP, 2 ms median
