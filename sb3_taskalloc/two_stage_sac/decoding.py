@@ -9,6 +9,7 @@ never uses them: its sampled decisions are the policy's own.
 >>> with model.decoding("exact_covers"):                   # inside the block only
 ...     evaluate_policy(model, env)
 >>> model.predict(obs, deterministic=True, decoder="argmax")  # one call
+>>> model.set_decoder(recommended_decoder("TaskAlloc/MT-v0"))  # the env's best measured (settings.RECOMMENDED_DECODERS)
 
 Adding a strategy is one class here, registered by name with :func:`register_decoder`.
 """
