@@ -46,6 +46,11 @@ MT_DECODER: tuple[str, dict[str, Any], str] = (
 )  # fmt: skip
 
 
+def latency_fields(ms: np.ndarray) -> dict[str, Any]:
+    """A latency row's figures: how many states were timed, and the median and p90 of their ms per decision."""
+    return {"states": len(ms), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90))}
+
+
 def bench_policy_mt(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Decision latency of MT's recommended decoder over the states of seeded MT episodes it plays, on the CPU, beside
     the argmax over the same states. The policy is untrained: with the pre-assign actor held at its rule, as in MT's
@@ -69,9 +74,8 @@ def bench_policy_mt(args: argparse.Namespace) -> list[dict[str, Any]]:
     for name, kwargs, label in (("argmax", {}, ""), (decoder, config, words)):
         with model.decoding(name, **kwargs):
             ms = state_latencies_ms(model, states)
-        rows.append({"device": "cpu", "env": env_id, "policy": f"TAMPolicy untrained{label}",
-                     "decoder": name, "states": len(states), "median_ms": float(np.median(ms)),
-                     "p90_ms": float(np.percentile(ms, 90)), "mean_ms": float(np.mean(ms))})  # fmt: skip
+        rows.append({"device": "cpu", "env": env_id, "policy": f"TAMPolicy untrained{label}", "decoder": name,
+                     **latency_fields(ms), "mean_ms": float(np.mean(ms))})  # fmt: skip
     return rows
 
 
@@ -103,13 +107,11 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
                 ms = state_latencies_ms(agent, states, device)
             rows.append(
                 {"device": device, "env": env_id, "policy": f"TAMPolicy {name}{words}", "decoder": decoder,
-                 "states": len(states), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
-                 "model": source if name == "trained" else None,
+                 **latency_fields(ms), "model": source if name == "trained" else None,
                  "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if decoder == "argmax" else None}
             )  # fmt: skip
     ms = state_latencies_ms(GreedyAllocator(), states)
-    rows.append({"device": "cpu", "env": env_id, "policy": "Greedy", "states": len(states), "median_ms": float(np.median(ms)),
-                 "p90_ms": float(np.percentile(ms, 90))})  # fmt: skip
+    rows.append({"device": "cpu", "env": env_id, "policy": "Greedy", **latency_fields(ms)})
     return rows
 
 
