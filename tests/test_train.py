@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
 from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
@@ -22,7 +23,7 @@ from sb3_taskalloc.two_stage_sac import losses
 from sb3_taskalloc.two_stage_sac.policies import starts_at_rule
 from sb3_taskalloc.two_stage_sac.search import cover_search, select_search
 from sb3_taskalloc.two_stage_sac.select_stage import SelectState, round_profit, teacher_forced
-from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate, optimizer_step, temperature
+from sb3_taskalloc.two_stage_sac.updates import PreAssignUpdate, optimizer_step, optimizers, temperature
 
 
 @pytest.fixture(scope="module")
@@ -306,6 +307,20 @@ def test_entropy_coefficient_specs():
     fixed = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", ent_coef=0.05, select_kwargs={"ent_coef": "auto_0.5"})
     assert fixed.log_ent_coef is None and float(fixed.ent_coef_tensor) == pytest.approx(0.05)
     assert float(th.exp(fixed.log_select_ent_coef.detach())) == pytest.approx(0.5)
+
+
+def test_learning_rate_schedule_sets_every_optimizer():
+    """As in SB3's SAC, the schedule sets the learning rate of every optimizer a step runs, the temperatures' too."""
+    model = TwoStageSAC(
+        "TAMPolicy", "TaskAlloc/Almighty-v0", learning_rate=lambda progress: 1e-3 * progress,
+        select_kwargs={"ent_coef": "auto"}, seed=0,
+    )  # fmt: skip
+    model.set_logger(configure(None, []))
+    model._current_progress_remaining = 0.25
+    model.train(gradient_steps=0)
+    found = optimizers(model)
+    assert len(found) == 6 and model.ent_coef_optimizer in found and model.select_ent_coef_optimizer in found
+    assert all(group["lr"] == pytest.approx(2.5e-4) for optimizer in found for group in optimizer.param_groups)
 
 
 def test_gradient_step_changes_parameters(model):

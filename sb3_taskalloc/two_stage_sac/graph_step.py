@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import torch as th
 
 from sb3_taskalloc.common.buffers import TwoStageReplayBufferSamples
-from sb3_taskalloc.two_stage_sac.updates import Logs, PreAssignUpdate, SelectUpdate
+from sb3_taskalloc.two_stage_sac.updates import Logs, PreAssignUpdate, SelectUpdate, optimizers
 
 if TYPE_CHECKING:
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
@@ -61,24 +61,10 @@ class CUDAGraphStep(GradientStep):
         self.inputs: TwoStageReplayBufferSamples | None = None
         self.outputs: Logs = {}
 
-    def optimizers(self) -> Iterator[th.optim.Optimizer]:
-        """Every optimizer the step may run (the pre-assign stage's where the policy has one, the tuned temperatures)."""
-        m = self.model
-        for optimizer in (
-            m.selector.optimizer,
-            m.select_critic.optimizer,
-            None if m.actor is None else m.actor.optimizer,
-            None if m.critic is None else m.critic.optimizer,
-            m.ent_coef_optimizer,
-            m.select_ent_coef_optimizer,
-        ):
-            if optimizer is not None:
-                yield optimizer
-
     def make_capturable(self) -> None:
         """Adam with its step count on the device (``capturable``), which the graph increments: set here rather than
         at construction, since ``load`` restores the saved (eager) optimizer settings after it. Idempotent."""
-        for optimizer in self.optimizers():
+        for optimizer in optimizers(self.model):
             for group in optimizer.param_groups:
                 group["capturable"] = True
                 for param in group["params"]:
@@ -110,7 +96,7 @@ class CUDAGraphStep(GradientStep):
 
     def record(self, data: TwoStageReplayBufferSamples) -> None:
         """Record one step on ``data``, whose tensors become the graph's inputs (recording runs nothing)."""
-        for optimizer in self.optimizers():
+        for optimizer in optimizers(self.model):
             optimizer.zero_grad(set_to_none=True)  # the graph's backward passes allocate the gradients in its pool
         outputs: Logs = defaultdict(list)
         self.inputs, self.graph = data, th.cuda.CUDAGraph()

@@ -269,10 +269,7 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         self.policy.set_training_mode(True)
-        optimizers: list[th.optim.Optimizer] = [self.selector.optimizer, self.select_critic.optimizer]
-        if self.actor is not None and self.critic is not None:
-            optimizers += [self.actor.optimizer, self.critic.optimizer]
-        self._update_learning_rate(optimizers)
+        self._update_learning_rate(stage.optimizers(self))
         logs: stage.Logs = defaultdict(list)
 
         for gradient_step in range(gradient_steps):

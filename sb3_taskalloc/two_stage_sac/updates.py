@@ -69,6 +69,20 @@ def optimizer_step(optimizer: th.optim.Optimizer, loss: th.Tensor) -> th.Tensor:
     return loss.detach()
 
 
+def optimizers(model: TwoStageSAC) -> list[th.optim.Optimizer]:
+    """Every optimizer a gradient step may run: the select stage's, the pre-assign stage's where the policy has one,
+    and the tuned temperatures' (the learning-rate schedule sets all of them, as in SB3's SAC)."""
+    found = (
+        model.selector.optimizer,
+        model.select_critic.optimizer,
+        None if model.actor is None else model.actor.optimizer,
+        None if model.critic is None else model.critic.optimizer,
+        model.ent_coef_optimizer,
+        model.select_ent_coef_optimizer,
+    )
+    return [optimizer for optimizer in found if optimizer is not None]
+
+
 def read_logs(model: TwoStageSAC, logs: Logs, gradient_steps: int) -> dict[str, list[float]]:
     """The logged values of ``gradient_steps`` steps, read on the host in one transfer. Divergence is an error: a
     non-finite loss or temperature stops training, naming it and the steps it happened in."""

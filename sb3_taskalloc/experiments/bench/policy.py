@@ -29,21 +29,36 @@ TEAM_SEARCH = 64
 
 
 #: The trained policy's rows: its decoding strategies by name (:mod:`~sb3_taskalloc.two_stage_sac.decoding`) with
-#: their settings, and the words they add to the row's name.
-DECODER_ROWS: tuple[tuple[str, dict[str, Any], str], ...] = (
-    ("argmax", {}, ""),
-    ("preassign_search", {"samples": SEARCH}, f", search of {SEARCH}"),
-    ("team_search", {"samples": TEAM_SEARCH}, f", team search of {TEAM_SEARCH}"),
-    ("exact_covers", {}, ", exact covers"),
-    ("exact_top", {"top": 1}, ", exact pre-assignment among each entity's top task"),
-    ("exact_top", {"top": 2}, ", exact pre-assignment among each entity's top 2 tasks"),
-    (*RECOMMENDED_DECODERS["TaskAlloc/RBF-v0"], ", exact pre-assignment among each entity's top 2 tasks, 8 % surcharge"),
+#: their settings; :func:`decoder_words` names each row from them.
+DECODER_ROWS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("argmax", {}),
+    ("preassign_search", {"samples": SEARCH}),
+    ("team_search", {"samples": TEAM_SEARCH}),
+    ("exact_covers", {}),
+    ("exact_top", {"top": 1}),
+    ("exact_top", {"top": 2}),
+    RECOMMENDED_DECODERS["TaskAlloc/RBF-v0"],
 )
 
-#: MT's recommended decoder (every pair, each pair's cost raised 64 %), with the words it adds to the row's name.
-MT_DECODER: tuple[str, dict[str, Any], str] = (
-    *RECOMMENDED_DECODERS["TaskAlloc/MT-v0"], ", exact pre-assignment among every pair, 64 % surcharge"
-)  # fmt: skip
+#: MT's recommended decoder and its settings.
+MT_DECODER: tuple[str, dict[str, Any]] = RECOMMENDED_DECODERS["TaskAlloc/MT-v0"]
+
+
+def decoder_words(decoder: str, config: dict[str, Any], n_tasks: int) -> str:
+    """The words a decoder's row adds to the policy's name, built from its settings, so that a row is renamed when a
+    setting (a recommended decoder's, say) changes.
+
+    :param decoder: the strategy's name
+    :param config: its keyword arguments
+    :param n_tasks: the env's task slots M: ``exact_top`` with ``top`` ≥ M takes every pair
+    """
+    if decoder == "exact_top":
+        top, surcharge = config["top"], config.get("surcharge", 0.0)
+        among = "every pair" if top >= n_tasks else "each entity's top task" if top == 1 else f"each entity's top {top} tasks"
+        return f", exact pre-assignment among {among}" + (f", {100 * surcharge:g} % surcharge" if surcharge else "")
+    if decoder in ("preassign_search", "team_search"):
+        return f", {'team search' if decoder == 'team_search' else 'search'} of {config['samples']}"
+    return {"argmax": "", "exact_covers": ", exact covers"}[decoder]
 
 
 def latency_fields(ms: np.ndarray) -> dict[str, Any]:
@@ -63,7 +78,8 @@ def bench_policy_mt(args: argparse.Namespace) -> list[dict[str, Any]]:
     env_id = "TaskAlloc/MT-v0"
     th.manual_seed(0)
     model = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
-    decoder, config, words = MT_DECODER
+    decoder, config = MT_DECODER
+    words = decoder_words(decoder, config, model.observation_space["task_mask"].shape[0])  # type: ignore[index]
     if args.quick:  # a smoke run: half the states of an episode the argmax plays, as on RBF
         states = episode_states(model, env_id, [30_000])
         states = states[len(states) // 2 :: 2]
@@ -99,7 +115,8 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
         states = states[len(states) // 2 :: 2]  # seconds on its first states, where most robots are free)
     rows = []
     for device in devices:
-        searched = [("trained", trained, *row) for row in DECODER_ROWS]
+        n_tasks = trained.observation_space["task_mask"].shape[0]
+        searched = [("trained", trained, name, config, decoder_words(name, config, n_tasks)) for name, config in DECODER_ROWS]
         for name, agent, decoder, config, words in [searched[0], ("untrained", untrained, "argmax", {}, ""), *searched[1:]]:
             agent.policy.to(device)
             agent.device = th.device(device)
