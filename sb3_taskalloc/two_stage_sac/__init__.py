@@ -5,8 +5,9 @@ The implementation details (every equation; the deviations from the paper and fr
 """
 
 from sb3_taskalloc.two_stage_sac.callbacks import SelectDAggerCallback
+from sb3_taskalloc.two_stage_sac.entity_values import EntityValueDecoder, fit_entity_values
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
 from sb3_taskalloc.two_stage_sac.settings import PAPER_KWARGS
 from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
-__all__ = ["PAPER_KWARGS", "SelectDAggerCallback", "TAMPolicy", "TwoStageSAC"]
+__all__ = ["PAPER_KWARGS", "EntityValueDecoder", "SelectDAggerCallback", "TAMPolicy", "TwoStageSAC", "fit_entity_values"]

@@ -210,10 +210,15 @@ class ExactTopDecoder(ExactCoversDecoder):
     def config(self) -> dict[str, Any]:
         return {"top": self.top, "surcharge": self.surcharge, "seed": self.seed}
 
+    @property
+    def plain(self) -> bool:
+        """Whether the round's costs are the observation's own (no surcharge), so that its teams need no second solve."""
+        return self.surcharge == 0.0
+
     def costed(self, view: ObsView) -> ObsView:
         """The view whose pair costs the round's solve and the weighing of its teams read: ``view`` itself without a
         surcharge, else each pair's cost raised by it."""
-        return view if self.surcharge == 0.0 else view._replace(pair_cost=view.pair_cost + self.surcharge * view.pair_cost)
+        return view if self.plain else view._replace(pair_cost=view.pair_cost + self.surcharge * view.pair_cost)
 
     def preassign(
         self, policy: TAMPolicy, view: ObsView, dist: MaskedCategorical, first_round: bool
@@ -230,7 +235,7 @@ class ExactTopDecoder(ExactCoversDecoder):
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         head = policy.selector.head
-        if self.surcharge == 0.0:
+        if self.plain:
             # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so
             # the exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
             # pointer's argmax among them (the exact cover's decode is that same decode). Only a HiGHS row stopped at its

@@ -1,0 +1,126 @@
+"""The learned per-entity value in the exact pre-assignment (``entity_value``, implementation detail 27)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.two_stage_sac import EntityValueDecoder, fit_entity_values
+from sb3_taskalloc.two_stage_sac.decoding import decide_preassigned, get_decoding_strategy
+from sb3_taskalloc.two_stage_sac.entity_values import CONTROLS, mean_distance, pair_values, post_decision, regress
+from tests.test_decoding import _best_assignment
+
+SMALL = {"entity_rows": range(12)}  # twelve robots keep an RBF episode short
+
+
+@pytest.fixture(scope="module")
+def rbf_model() -> TwoStageSAC:
+    return TwoStageSAC("TAMPolicy", gym.make("TaskAlloc/RBF-v0", **SMALL), policy_kwargs={"hidden_dim": 16}, seed=0)
+
+
+def _states(model: TwoStageSAC, steps: int = 12, seed: int = 3):
+    """(obs, env) pairs of ``steps`` argmax steps of the small RBF env, each env a copy at its state."""
+    import copy
+
+    env = gym.make("TaskAlloc/RBF-v0", **SMALL)
+    obs, _ = env.reset(seed=seed)
+    states = []
+    for _ in range(steps):
+        states.append((obs, copy.deepcopy(env.unwrapped)))
+        obs = env.step(model.predict(obs, deterministic=True)[0])[0]
+    return states
+
+
+def _view(model: TwoStageSAC, obs):
+    return model.policy.parse(model.policy.obs_to_tensor(obs)[0])
+
+
+def test_pair_values_from_the_observation_match_the_env(rbf_model):
+    """v_ij = θ_free − θ_τ·(d_ij + 1) + θ_e·(e(cell_i) − e(cell_j)), with the env's own distances and cells."""
+    theta = (-0.11, -0.034, 0.025)
+    grid = np.arange(7)
+    e_cell = np.abs(grid[:, None] - grid[None, :]).mean(1)  # per coordinate
+    for obs, env in _states(rbf_model, steps=8):
+        v = pair_values(_view(rbf_model, obs), theta, 7)[0].double().numpy()
+        here = env._pos.astype(int)
+        e_here = e_cell[here[:, 0]] + e_cell[here[:, 1]]
+        e_there = e_cell[env._tpos[:, 0].astype(int)] + e_cell[env._tpos[:, 1].astype(int)]
+        expected = theta[0] - theta[1] * (env._dist + 1.0) + theta[2] * (e_here[:, None] - e_there[None, :])
+        np.testing.assert_allclose(v, expected, atol=1e-6)
+    assert float(mean_distance(th.tensor([3.0, 3.0]), 7)) == pytest.approx(2 * 12 / 7)  # the centre: 12/7 per axis
+
+
+def test_zero_values_decide_as_exact_top_and_the_objective_is_the_best_assignment(rbf_model):
+    """θ = 0 is ``exact_top`` of the same ``top``; with θ ≠ 0 and every pair allowed, each state's decision is worth,
+    at the costs c + v, the best of all assignments enumerated."""
+    policy = rbf_model.policy
+    obs = [o for o, _ in _states(rbf_model, steps=10)]
+    view = policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
+    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 5))  # (M + 1)^5 assignments
+    M, theta = view.reward.shape[1], (0.3, -0.2, 0.1)
+    with th.no_grad():
+        zero = decide_preassigned(policy, view, EntityValueDecoder(top=2))
+        exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
+        valued = decide_preassigned(policy, view, EntityValueDecoder(top=M, theta=theta))
+    assert th.equal(zero.env_action, exact.env_action)
+    cost = view.pair_cost + pair_values(view, theta, 7)
+    team = (valued.pick_rank >= 0) & valued.kept.unsqueeze(-1)  # (B, M, N)
+    found = (valued.kept * (view.reward - (team.float() * cost.transpose(1, 2)).sum(-1))).sum(-1)
+    checked = 0
+    for b in range(view.reward.shape[0]):
+        entities = np.flatnonzero(view.entity_mask[b].numpy())
+        if len(entities) and bool(view.task_mask[b].any()):
+            assert float(found[b]) == pytest.approx(_best_assignment(view, b, entities, cost[b].numpy()), abs=1e-3)
+            checked += 1
+    assert checked >= 3
+
+
+def test_post_decision_features_count_free_busy_and_cells(rbf_model):
+    """Σ φ after a decision, from the observation and the tracked targets, equals the env's state after it."""
+    env = gym.make("TaskAlloc/RBF-v0", **SMALL)
+    obs, _ = env.reset(seed=4)
+    u = env.unwrapped
+    target = np.zeros((u.max_entities, 2))
+    grid = np.arange(7)
+    e_cell = np.abs(grid[:, None] - grid[None, :]).mean(1)
+    for _ in range(15):
+        action = rbf_model.predict(obs, deterministic=False)[0]
+        phi = post_decision(_view(rbf_model, obs), np.asarray(action), target, 7)
+        sent = (action < u.max_tasks) & u._free
+        task = np.where(sent, action, u._assigned)
+        busy = task >= 0
+        tau = np.where(busy, u._dist[np.arange(len(task)), np.maximum(task, 0)] + 1.0, 0.0)
+        cell = np.where(busy[:, None], u._tpos[np.maximum(task, 0)], u._pos).astype(int)
+        expected = [(~busy).sum(), tau.sum(), (e_cell[cell[:, 0]] + e_cell[cell[:, 1]]).sum()]
+        np.testing.assert_allclose(phi, expected, atol=1e-9)
+        obs = env.step(action)[0]
+
+
+def test_regression_recovers_the_values_under_time_controls():
+    rng = np.random.default_rng(0)
+    n = 400
+    phi = rng.normal(size=(n, 3)) * [5.0, 20.0, 30.0] + [10.0, 40.0, 100.0]
+    t = rng.uniform(0, 1, n)
+    rows = np.column_stack([phi, np.ones(n), t, t**2])
+    y = phi @ [0.5, -0.1, 0.02] + 80 * (1 - t) ** 2 + rng.normal(scale=0.01, size=n)
+    theta, r2 = regress(rows, y, ridge=1e-9)
+    np.testing.assert_allclose(theta, [0.5, -0.1, 0.02], atol=2e-3)
+    assert r2 > 0.999 and rows.shape[1] - CONTROLS == 3
+
+
+def test_fit_runs_the_decoder_in_the_loop_and_damps(rbf_model):
+    short = {**SMALL, "max_episode_steps": 15}
+    fit = fit_entity_values(rbf_model, "TaskAlloc/RBF-v0", iterations=2, episodes=1, env_kwargs=short)
+    assert fit.thetas[0] == (0.0, 0.0, 0.0) and len(fit.thetas) == 3 and len(fit.r2) == 2
+    assert all(np.isfinite(theta).all() for theta in fit.thetas) and fit.thetas[1] != fit.thetas[0]
+    assert fit.decoder.theta == fit.thetas[-1] and fit.decoder.config["top"] == 2
+    assert get_decoding_strategy("entity_value", theta=fit.thetas[-1]).theta == fit.decoder.theta
+    with pytest.raises(ValueError, match="Manhattan"):
+        fit_entity_values(rbf_model, "TaskAlloc/MT-v0")
+    with pytest.raises(ValueError, match="damping"):
+        fit_entity_values(rbf_model, "TaskAlloc/RBF-v0", damping=1.5)
+    with pytest.raises(ValueError, match="theta must be three finite numbers"):
+        EntityValueDecoder(theta=(1.0, float("nan"), 0.0))
