@@ -979,3 +979,11 @@ def test_learning_experiment_on_cuda_is_a_run_of_its_own(tmp_path, capsys):
     (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
     assert record["device"] == "cuda" and len(record["trained"]) == 2
     assert cuda.seed_path(0).with_suffix(".zip").exists() and not cpu.seed_path(0).exists()
+
+
+def test_a_sequence_setting_names_its_report_without_brackets():
+    from sb3_taskalloc.experiments.reevaluate import _reevaluation_labels
+
+    suffix, _, flags = _reevaluation_labels(None, "entity_value", {"top": 2, "theta": [-0.114, -0.041, 0.01]}, 0)
+    assert suffix == "_decoder_entity_value_theta_-0.114_-0.041_0.01_top_2"
+    assert """--decoder entity_value --decoder-kwargs '{"top": 2, "theta": [-0.114, -0.041, 0.01]}'""" in flags

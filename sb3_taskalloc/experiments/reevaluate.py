@@ -27,7 +27,9 @@ def _reevaluation_labels(shift: str | None, decoder: str, config: dict[str, Any]
     if shift:
         parts.append((f"zero_shot_{shift}", f"zero-shot {shift}"))
     if decoder != "argmax":
-        settings = "".join(f"_{k}_{v}" for k, v in sorted(config.items()))
+        # a sequence setting (entity_value's theta) joins its numbers with "_": no brackets or spaces in a file name
+        text = {k: "_".join(map(str, v)) if isinstance(v, list | tuple) else v for k, v in config.items()}
+        settings = "".join(f"_{k}_{v}" for k, v in sorted(text.items()))
         flag = f"decoder {decoder}" + (f" --decoder-kwargs '{json.dumps(config)}'" if config else "")
         parts.append((f"decoder_{decoder}{settings}", flag))
     if more_episodes:

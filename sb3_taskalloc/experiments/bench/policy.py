@@ -52,10 +52,11 @@ def decoder_words(decoder: str, config: dict[str, Any], n_tasks: int) -> str:
     :param config: its keyword arguments
     :param n_tasks: the env's task slots M: ``exact_top`` with ``top`` ≥ M takes every pair
     """
-    if decoder == "exact_top":
-        top, surcharge = config["top"], config.get("surcharge", 0.0)
+    if decoder in ("exact_top", "entity_value"):
+        top, surcharge = config.get("top", 2), config.get("surcharge", 0.0)
         among = "every pair" if top >= n_tasks else "each entity's top task" if top == 1 else f"each entity's top {top} tasks"
-        return f", exact pre-assignment among {among}" + (f", {100 * surcharge:g} % surcharge" if surcharge else "")
+        words = f", exact pre-assignment among {among}" + (f", {100 * surcharge:g} % surcharge" if surcharge else "")
+        return words + (", learned entity values" if decoder == "entity_value" else "")
     if decoder in ("preassign_search", "team_search"):
         return f", {'team search' if decoder == 'team_search' else 'search'} of {config['samples']}"
     return {"argmax": "", "exact_covers": ", exact covers"}[decoder]
