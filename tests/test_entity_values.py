@@ -59,7 +59,7 @@ def test_zero_values_decide_as_exact_top_and_the_objective_is_the_best_assignmen
     policy = rbf_model.policy
     obs = [o for o, _ in _states(rbf_model, steps=10)]
     view = policy.parse(policy.obs_to_tensor({k: np.stack([o[k] for o in obs]) for k in obs[0]})[0])
-    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 5))  # (M + 1)^5 assignments
+    view = view._replace(entity_mask=view.entity_mask & (view.entity_mask.cumsum(-1) <= 4))  # (M + 1)^4 assignments
     M, theta = view.reward.shape[1], (0.3, -0.2, 0.1)
     with th.no_grad():
         zero = decide_preassigned(policy, view, EntityValueDecoder(top=2))
