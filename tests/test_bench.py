@@ -43,7 +43,7 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
                  f"TAMPolicy trained, team search of {bench.TEAM_SEARCH}", "TAMPolicy trained, exact covers",
                  "TAMPolicy trained, exact pre-assignment among each entity's top task",
                  "TAMPolicy trained, exact pre-assignment among each entity's top 2 tasks",
-                 "TAMPolicy trained, exact pre-assignment among each entity's top 2 tasks, 8 % surcharge"}  # fmt: skip
+                 "TAMPolicy trained, exact pre-assignment among each entity's top 2 tasks, learned entity values"}  # fmt: skip
         assert {row["policy"] for row in episodes if row["env"] == "TaskAlloc/RBF-v0"} == names
         mt = [row for row in episodes if row["env"] == "TaskAlloc/MT-v0"]  # MT's recommended decoder beside the argmax
         assert [row["decoder"] for row in mt] == ["argmax", bench.MT_DECODER[0]]

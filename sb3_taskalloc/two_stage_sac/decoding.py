@@ -194,8 +194,8 @@ class ExactTopDecoder(ExactCoversDecoder):
     With ``surcharge`` σ > 0 each pair costs (1 + σ)·c in the round's solve and in weighing its teams: the opportunity
     cost of committing an entity now, which the per-step objective leaves out (an entity sent on a trip is missing from
     the tasks that appear while it travels). The measured settings (docs/learning.md, "The surcharge's size"): on RBF
-    ``top=2, surcharge=0.08`` (as much over σ = 0 as a critic's learned per-pair future values gave), on MT
-    ``top=10, surcharge=0.64`` (every pair, as the per-step MILP, whose returns it passes by 14 %).
+    ``top=2, surcharge=0.08`` (where learned per-robot values do better: ``entity_value``), on MT ``top=10,
+    surcharge=0.64`` (every pair, as the per-step MILP, whose returns it passes by 14 %).
     """
 
     name = "exact_top"

@@ -31,12 +31,14 @@ PAPER_KWARGS: dict[str, Any] = {
 
 
 #: Each env's best deployment decoding measured, as (strategy name, its settings) for ``model.set_decoder(name,
-#: **settings)`` or :func:`~sb3_taskalloc.two_stage_sac.decoding.recommended_decoder`: the exact pre-assignment with
-#: each pair's cost raised by the surcharge (implementation detail 25), chosen on training seeds and reported on others
-#: (docs/learning.md, "The surcharge's size"). Other envs decide by the argmax (on EPT the exact decoders measured no
-#: better).
+#: **settings)`` or :func:`~sb3_taskalloc.two_stage_sac.decoding.recommended_decoder`, chosen on training seeds and
+#: reported on others. RBF: the exact pre-assignment with learned per-robot values in the pair costs (implementation
+#: detail 27; θ fitted with the decoder in the loop on training seeds 0–1; docs/learning.md, "A learned per-robot
+#: value"). MT: the exact pre-assignment over every pair with each pair's cost raised by the surcharge (detail 25;
+#: "The surcharge's size"). Other envs decide by the argmax (on EPT the exact decoders measured no better).
 RECOMMENDED_DECODERS: dict[str, tuple[str, dict[str, Any]]] = {
-    "TaskAlloc/RBF-v0": ("exact_top", {"top": 2, "surcharge": 0.08}),  # 1.07 × the per-step MILP, 16–38 ms median
+    # 1.16 × the per-step MILP, 16–27 ms median per decision
+    "TaskAlloc/RBF-v0": ("entity_value", {"top": 2, "theta": (-0.114, -0.041, 0.010)}),
     "TaskAlloc/MT-v0": ("exact_top", {"top": 10, "surcharge": 0.64}),  # 1.14 × the per-step MILP, 2 ms median
 }
 
