@@ -131,12 +131,21 @@ def regress(rows: np.ndarray, y: np.ndarray, ridge: float = 1e-3) -> tuple[np.nd
     return (w / sd)[:n], float(1.0 - (residual**2).sum() / ((y - y.mean()) ** 2).sum())
 
 
+class Exploration(NamedTuple):
+    """A per-decision surcharge ξ ~ U(0, ``high``) from ``rng``."""
+
+    rng: np.random.Generator
+    high: float
+
+
 def play(
-    model: TwoStageSAC, env: Any, decoder: EntityValueDecoder, reset_seed: int, explore: Any = None
+    model: TwoStageSAC, env: Any, decoder: EntityValueDecoder, reset_seed: int, explore: Exploration | None = None
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """One episode decided by ``decoder``: its return, each decision's post-decision features and controls (rows of
-    the regression) and the commitment return that follows each decision. ``explore``: a numpy generator whose
-    U(0, ``explore.high``) surcharge each decision adds (None: none)."""
+    the regression) and the commitment return that follows each decision.
+
+    :param explore: the surcharge each decision adds (None: none)
+    """
     obs, _ = env.reset(seed=reset_seed)
     horizon = float(env.spec.max_episode_steps)
     target = np.zeros((obs["entity_mask"].shape[0], 2))
@@ -155,13 +164,6 @@ def play(
             done, t = terminated or truncated, t + 1
     after = np.concatenate([np.cumsum(commitments[::-1])[::-1][1:], [0.0]])  # what the later decisions commit
     return total, np.asarray(rows), after
-
-
-class Exploration(NamedTuple):
-    """A per-decision surcharge ξ ~ U(0, ``high``) from ``rng``."""
-
-    rng: np.random.Generator
-    high: float
 
 
 def fit_entity_values(
