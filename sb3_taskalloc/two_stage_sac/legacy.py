@@ -84,7 +84,8 @@ def check_policy_kwargs(policy_class: type[Any], policy_kwargs: dict[str, Any]) 
     if policy_kwargs.get("mixer") == "future":
         raise ValueError(
             "mixer='future' (the critic Q = P + F read by the value_top decoder) was removed: a uniform surcharge on "
-            "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08) (docs/learning.md); the "
+            "the pair costs decided as well, set_decoder('exact_top', top=2, surcharge=0.08), and learned per-robot "
+            "values better, set_decoder(recommended_decoder('TaskAlloc/RBF-v0')) (docs/learning.md); the "
             f"last commit with it is {FUTURE_CRITIC_COMMIT}. A model saved with it still loads"
         )
     accepted = set(inspect.signature(policy_class.__init__).parameters)
@@ -166,7 +167,8 @@ def convert(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Decod
         warnings.warn(
             "this model was trained with the future critic (mixer='future'), removed from sb3_taskalloc: its critic "
             "loads as an AMIX critic, which no decision reads with its actor held, so it decides as before; decode it "
-            "with set_decoder('exact_top', top=2, surcharge=0.08) where it used value_top (docs/learning.md)",
+            "with set_decoder('exact_top', top=2, surcharge=0.08) where it used value_top, or with its env's "
+            "recommended_decoder(env_id), which does better on RBF (docs/learning.md)",
             stacklevel=3,
         )
     mixer = {new: policy_kwargs.pop(old) for old, new in MIXER_KEYS.items() if old in policy_kwargs}
