@@ -20,8 +20,8 @@ import pytest
 BUDGET = {"total_timesteps": 500, "learning_rate": 1e-3, "learning_starts": 200}
 SEEDS = range(5)
 #: The sequence variant decodes its tasks one after the other (about 2× slower per step): to fit CI it is checked on
-#: 3 seeds, at the same budget.
-SEQUENCE_SEEDS, SEQUENCE_STEPS = range(3), BUDGET["total_timesteps"]
+#: 2 seeds, at the same budget (it fails if both reach the optimum).
+SEQUENCE_SEEDS, SEQUENCE_STEPS = range(2), BUDGET["total_timesteps"]
 
 
 def train_and_evaluate(args: tuple[int, dict, int]) -> float:
