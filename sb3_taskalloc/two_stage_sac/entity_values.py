@@ -106,15 +106,15 @@ def post_decision(view: ObsView, env_action: np.ndarray, target: np.ndarray, gri
     (batch 1). ``target`` (N, 2) holds the cell of each committed entity's task, updated here with the sent ones'."""
     K = view.supply.shape[-1]
     M = view.task_mask.shape[1]
-    here, there = cells(view.entity[0], K).numpy(), cells(view.task[0], K).numpy()
-    busy_time = th.expm1(view.entity[0, :, K + 3].double()).round().numpy()  # distance to the task's cell + 1, 0 if free
-    sent = (env_action < M) & view.entity_mask[0].numpy()
+    here, there = cells(view.entity[0], K).cpu().numpy(), cells(view.task[0], K).cpu().numpy()
+    busy_time = th.expm1(view.entity[0, :, K + 3].double()).round().cpu().numpy()  # distance to its task's cell + 1, or 0
+    sent = (env_action < M) & view.entity_mask[0].cpu().numpy()
     target[sent] = there[env_action[sent]]
     tau = np.where(sent, np.abs(here - target).sum(-1) + 1.0, busy_time)
     busy = tau > 0
     cell = np.where(busy[:, None], target, here)
     e = mean_distance(th.as_tensor(cell), grid_size).numpy()
-    present = view.present[0].numpy()
+    present = view.present[0].cpu().numpy()
     return np.array([(~busy & present).sum(), tau[present].sum(), e[present].sum()])
 
 
