@@ -168,6 +168,20 @@ def _best_assignment(view, b: int, entities: np.ndarray, cost: np.ndarray) -> fl
     return best
 
 
+def _check_best_assignments(view, decision, cost: th.Tensor) -> int:
+    """Assert that each state's ``decision`` is worth, at the pair costs ``cost`` (B, N, M), the best of all
+    assignments of its free entities enumerated; return how many states had something to decide."""
+    team = (decision.pick_rank >= 0) & decision.kept.unsqueeze(-1)  # (B, M, N)
+    found = (decision.kept * (view.reward - (team.float() * cost.transpose(1, 2)).sum(-1))).sum(-1)
+    checked = 0
+    for b in range(view.reward.shape[0]):
+        entities = np.flatnonzero(view.entity_mask[b].numpy())
+        if len(entities) and bool(view.task_mask[b].any()):
+            assert float(found[b]) == pytest.approx(_best_assignment(view, b, entities, cost[b].numpy()), abs=1e-3)
+            checked += 1
+    return checked
+
+
 def _visited(model: TwoStageSAC, steps: int = 12):
     """The states of ``steps`` deterministic MT steps from reset seed 5, as one batch's view."""
     env = gym.make("TaskAlloc/MT-v0")
@@ -238,15 +252,7 @@ def test_the_surcharge_raises_every_pair_cost_in_exact_tops_objective(mt_model: 
         unsurcharged = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=M))
         plain = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2, surcharge=0.0))
         exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
-    team = (first.pick_rank >= 0) & first.kept.unsqueeze(-1)  # (B, M, N)
-    found = (first.kept * (view.reward - (team.float() * cost.transpose(1, 2)).sum(-1))).sum(-1)
-    checked = 0
-    for b in range(view.reward.shape[0]):
-        entities = np.flatnonzero(view.entity_mask[b].numpy())
-        if len(entities) and bool(view.task_mask[b].any()):
-            assert float(found[b]) == pytest.approx(_best_assignment(view, b, entities, cost[b].numpy()), abs=1e-3)
-            checked += 1
-    assert checked >= 3
+    assert _check_best_assignments(view, first, cost) >= 3
     assert th.equal(plain.env_action, exact.env_action)
     # a surcharge this large leaves some truck home that the plain objective sends
     assert int((first.env_action < M).sum()) < int((unsurcharged.env_action < M).sum())

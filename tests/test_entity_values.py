@@ -11,9 +11,11 @@ from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.two_stage_sac import EntityValueDecoder, fit_entity_values
 from sb3_taskalloc.two_stage_sac.decoding import decide_preassigned, get_decoding_strategy
 from sb3_taskalloc.two_stage_sac.entity_values import CONTROLS, mean_distance, pair_values, post_decision, regress
-from tests.test_decoding import _best_assignment
+from tests.test_decoding import _check_best_assignments
 
 SMALL = {"entity_rows": range(12)}  # twelve robots keep an RBF episode short
+#: e per coordinate on RBF's 7 × 7 grid: the mean |x − u| over the cells u, computed here by hand
+E_AXIS = np.abs(np.arange(7)[:, None] - np.arange(7)[None, :]).mean(1)
 
 
 @pytest.fixture(scope="module")
@@ -41,13 +43,11 @@ def _view(model: TwoStageSAC, obs):
 def test_pair_values_from_the_observation_match_the_env(rbf_model):
     """v_ij = θ_free − θ_τ·(d_ij + 1) + θ_e·(e(cell_i) − e(cell_j)), with the env's own distances and cells."""
     theta = (-0.11, -0.034, 0.025)
-    grid = np.arange(7)
-    e_cell = np.abs(grid[:, None] - grid[None, :]).mean(1)  # per coordinate
     for obs, env in _states(rbf_model, steps=8):
         v = pair_values(_view(rbf_model, obs), theta, 7)[0].double().numpy()
         here = env._pos.astype(int)
-        e_here = e_cell[here[:, 0]] + e_cell[here[:, 1]]
-        e_there = e_cell[env._tpos[:, 0].astype(int)] + e_cell[env._tpos[:, 1].astype(int)]
+        e_here = E_AXIS[here[:, 0]] + E_AXIS[here[:, 1]]
+        e_there = E_AXIS[env._tpos[:, 0].astype(int)] + E_AXIS[env._tpos[:, 1].astype(int)]
         expected = theta[0] - theta[1] * (env._dist + 1.0) + theta[2] * (e_here[:, None] - e_there[None, :])
         np.testing.assert_allclose(v, expected, atol=1e-6)
     assert float(mean_distance(th.tensor([3.0, 3.0]), 7)) == pytest.approx(2 * 12 / 7)  # the centre: 12/7 per axis
@@ -66,16 +66,7 @@ def test_zero_values_decide_as_exact_top_and_the_objective_is_the_best_assignmen
         exact = decide_preassigned(policy, view, get_decoding_strategy("exact_top", top=2))
         valued = decide_preassigned(policy, view, EntityValueDecoder(top=M, theta=theta))
     assert th.equal(zero.env_action, exact.env_action)
-    cost = view.pair_cost + pair_values(view, theta, 7)
-    team = (valued.pick_rank >= 0) & valued.kept.unsqueeze(-1)  # (B, M, N)
-    found = (valued.kept * (view.reward - (team.float() * cost.transpose(1, 2)).sum(-1))).sum(-1)
-    checked = 0
-    for b in range(view.reward.shape[0]):
-        entities = np.flatnonzero(view.entity_mask[b].numpy())
-        if len(entities) and bool(view.task_mask[b].any()):
-            assert float(found[b]) == pytest.approx(_best_assignment(view, b, entities, cost[b].numpy()), abs=1e-3)
-            checked += 1
-    assert checked >= 3
+    assert _check_best_assignments(view, valued, view.pair_cost + pair_values(view, theta, 7)) >= 3
 
 
 def test_post_decision_features_count_free_busy_and_cells(rbf_model):
@@ -84,8 +75,6 @@ def test_post_decision_features_count_free_busy_and_cells(rbf_model):
     obs, _ = env.reset(seed=4)
     u = env.unwrapped
     target = np.zeros((u.max_entities, 2))
-    grid = np.arange(7)
-    e_cell = np.abs(grid[:, None] - grid[None, :]).mean(1)
     for _ in range(15):
         action = rbf_model.predict(obs, deterministic=False)[0]
         phi = post_decision(_view(rbf_model, obs), np.asarray(action), target, 7)
@@ -94,7 +83,7 @@ def test_post_decision_features_count_free_busy_and_cells(rbf_model):
         busy = task >= 0
         tau = np.where(busy, u._dist[np.arange(len(task)), np.maximum(task, 0)] + 1.0, 0.0)
         cell = np.where(busy[:, None], u._tpos[np.maximum(task, 0)], u._pos).astype(int)
-        expected = [(~busy).sum(), tau.sum(), (e_cell[cell[:, 0]] + e_cell[cell[:, 1]]).sum()]
+        expected = [(~busy).sum(), tau.sum(), (E_AXIS[cell[:, 0]] + E_AXIS[cell[:, 1]]).sum()]
         np.testing.assert_allclose(phi, expected, atol=1e-9)
         obs = env.step(action)[0]
 
