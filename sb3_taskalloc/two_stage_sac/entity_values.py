@@ -211,7 +211,7 @@ def fit_entity_values(
             f"travel={travel!r}, grid_size={grid_size!r}"
         )
     theta = np.zeros(3)
-    found = EntityValueFit(EntityValueDecoder(top, theta.tolist(), grid_size), [tuple(theta)], [], [])
+    thetas, r2s, train_returns = [tuple(float(x) for x in theta)], [], []
     bar = tqdm(total=iterations * episodes, disable=not progress_bar, desc="entity values")
     for k in range(iterations):
         decoder, rows, y, returns = EntityValueDecoder(top, theta.tolist(), grid_size), [], [], []
@@ -224,8 +224,8 @@ def fit_entity_values(
             bar.update()
         fitted, r2 = regress(np.concatenate(rows), np.concatenate(y))
         theta = fitted if k == 0 else (1.0 - damping) * theta + damping * fitted
-        found.thetas.append(tuple(float(x) for x in theta))
-        found.r2.append(r2)
-        found.train_returns.append(float(np.mean(returns)))
+        thetas.append(tuple(float(x) for x in theta))
+        r2s.append(r2)
+        train_returns.append(float(np.mean(returns)))
     bar.close()
-    return found._replace(decoder=EntityValueDecoder(top, theta.tolist(), grid_size))
+    return EntityValueFit(EntityValueDecoder(top, theta.tolist(), grid_size), thetas, r2s, train_returns)

@@ -49,11 +49,14 @@ def decoder_words(decoder: str, config: dict[str, Any], n_tasks: int) -> str:
     setting (a recommended decoder's, say) changes.
 
     :param decoder: the strategy's name
-    :param config: its keyword arguments
+    :param config: its keyword arguments (the strategy's defaults fill the rest)
     :param n_tasks: the env's task slots M: ``exact_top`` with ``top`` ≥ M takes every pair
     """
+    from sb3_taskalloc.two_stage_sac.decoding import get_decoding_strategy
+
+    config = get_decoding_strategy(decoder, **config).config
     if decoder in ("exact_top", "entity_value"):
-        top, surcharge = config.get("top", 2), config.get("surcharge", 0.0)
+        top, surcharge = config["top"], config["surcharge"]
         among = "every pair" if top >= n_tasks else "each entity's top task" if top == 1 else f"each entity's top {top} tasks"
         words = f", exact pre-assignment among {among}" + (f", {100 * surcharge:g} % surcharge" if surcharge else "")
         return words + (", learned entity values" if decoder == "entity_value" else "")
@@ -114,10 +117,10 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
     states = episode_states(trained, env_id, seeds)
     if args.quick:  # a smoke run: every other state of the episode's second half (the exact decoders take up to
         states = states[len(states) // 2 :: 2]  # seconds on its first states, where most robots are free)
+    n_tasks = trained.observation_space["task_mask"].shape[0]
+    searched = [("trained", trained, name, config, decoder_words(name, config, n_tasks)) for name, config in DECODER_ROWS]
     rows = []
     for device in devices:
-        n_tasks = trained.observation_space["task_mask"].shape[0]
-        searched = [("trained", trained, name, config, decoder_words(name, config, n_tasks)) for name, config in DECODER_ROWS]
         for name, agent, decoder, config, words in [searched[0], ("untrained", untrained, "argmax", {}, ""), *searched[1:]]:
             agent.policy.to(device)
             agent.device = th.device(device)
