@@ -125,12 +125,14 @@ def test_fingerprint(name):
     # PyTorch's CPU kernels round differently on other instruction sets (e.g. AVX-512 against AVX2), which it does not
     # promise to make bit-identical: there the last bits of the losses and parameters differ, and a near-tie of a
     # sampled decision can flip. Such a machine still has to give the same deterministic actions and log, step for
-    # step, the same values to within 1 %; a change of the arithmetic moves them further.
+    # step, the same values to within 1 %; a change of the arithmetic moves them further. A loss that is a difference of
+    # larger terms (the actor's E[α log π − Q] near 0) keeps their rounding in absolute terms, hence the absolute 10⁻³:
+    # on an AVX2 machine RBF-attention's actor loss of −0.0059 was logged as −0.0064, its other values within 0.07 %.
     assert got["predict"] == expected["predict"]
     assert [sorted(r) for r in got["logged"]] == [sorted(r) for r in expected["logged"]]
     for step, (g, e) in enumerate(zip(got["logged"], expected["logged"], strict=True)):
         for key in e:
-            assert float.fromhex(g[key]) == pytest.approx(float.fromhex(e[key]), rel=1e-2, abs=1e-6), (step, key)
+            assert float.fromhex(g[key]) == pytest.approx(float.fromhex(e[key]), rel=1e-2, abs=1e-3), (step, key)
 
 
 def test_fingerprint_sees_a_change():
