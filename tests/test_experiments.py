@@ -67,6 +67,31 @@ def short_branching(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(diagnose, "diagnose", partial(diagnose.diagnose, branches=2, branch_stride=20))
 
 
+#: EPT's episode length in the runners' plumbing tests (registered: 100)
+SHORT_EPT_STEPS = 25
+
+
+def short_worker(parent: int) -> None:
+    """The learning experiment's worker set-up (``jobs > 1``) with :data:`SHORT_EPT_STEPS`-step EPT episodes."""
+    from sb3_taskalloc.experiments.evaluation import one_thread
+
+    one_thread(parent)
+    gym.spec("TaskAlloc/EPT-v0").max_episode_steps = SHORT_EPT_STEPS
+
+
+@pytest.fixture
+def short_episodes() -> Any:
+    """EPT episodes of 25 steps instead of 100, here and in the learning experiment's worker processes: the runners'
+    plumbing (files, columns, resumption) is the same on a quarter of an episode, in a quarter of the time. A
+    MonkeyPatch of its own, so that a test's ``monkeypatch.undo()`` keeps it."""
+    from sb3_taskalloc.experiments import learn
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gym.spec("TaskAlloc/EPT-v0"), "max_episode_steps", SHORT_EPT_STEPS)
+        patch.setattr(learn, "one_thread", short_worker)
+        yield
+
+
 @pytest.fixture(scope="module")
 def smoke_tables(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("results")
@@ -471,7 +496,7 @@ def test_goal_lines_use_only_the_tables_seeds(tmp_path):
     assert "Ours / Greedy on the training env: 0.800 (goal ≥ 1)" in two.write_table().read_text()
 
 
-def test_diagnose_measures_calibration_and_drift(tmp_path):
+def test_diagnose_measures_calibration_and_drift(tmp_path, short_episodes):
     """The diagnosis of a model reads its critic against Monte-Carlo returns and its actor against the initial rule:
     untrained, the actor equals its rule (KL 0, no argmax changed); moved away from it, both figures see the drift."""
     import torch as th
@@ -599,7 +624,7 @@ def test_diagnose_reads_the_critic_against_the_reward_it_learns():
     assert "credited at commitment" in credited.table()
 
 
-def test_learning_experiment_completes_records_of_earlier_versions(tmp_path, short_branching):
+def test_learning_experiment_completes_records_of_earlier_versions(tmp_path, short_branching, short_episodes):
     """A finished seed whose critic figures predate ``critic_reward`` is measured again from its saved model when the
     critic learned the commitment reward, and kept with a warning when the model is gone; one without the stage
     columns gets them from the saved model."""
@@ -685,7 +710,7 @@ def test_resume_over_a_broken_model_file(tmp_path, capsys):
     assert "could not be loaded" in capsys.readouterr().out
 
 
-def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch, short_branching):
+def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch, short_branching, short_episodes):
     """The learning experiment evaluates every column on the same held-out episodes per seed, writes per-seed and
     summary files, and a second run reads the finished seeds back instead of training again."""
     import json
@@ -789,7 +814,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch,
     assert all([p[0] for p in r["curve"]] == [0, 6, 10] for r in summary["seeds"])
 
 
-def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tmp_path):
+def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tmp_path, short_episodes):
     """With validation episodes the curve is measured on them (disjoint from the held-out episodes), the checkpoint of
     its best point after step 0 is saved and evaluated on the held-out episodes, and the summary reports it."""
     import json

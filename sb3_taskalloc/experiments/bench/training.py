@@ -211,7 +211,7 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     env_id = "TaskAlloc/RBF-v0"
     # The block's DAgger phase after the training steps, timed and evaluated apart (--quick: the smoke budget's).
     schedule = {**zoo_dagger(env_id), **(DAGGER_BUDGET["smoke"] if args.quick else {})}
-    budget, every, episodes = (200, 100, 2) if args.quick else (args.learn_steps, args.eval_every, 10)
+    budget, every, episodes = (200, 100, 1) if args.quick else (args.learn_steps, args.eval_every, 10)
     if budget < 1 or every < 1:
         raise SystemExit(f"--learn-steps and --eval-every must be >= 1, got {budget} and {every}")
 
