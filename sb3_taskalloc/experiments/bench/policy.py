@@ -70,6 +70,12 @@ def latency_fields(ms: np.ndarray) -> dict[str, Any]:
     return {"states": len(ms), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90))}
 
 
+def smoke_states(states: list[Any]) -> list[Any]:
+    """``--quick``'s states: every fourth state of an episode's second half (the exact decoders take up to seconds on
+    its first states, where most entities are free)."""
+    return states[len(states) // 2 :: 4]
+
+
 def bench_policy_mt(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Decision latency of MT's recommended decoder over the states of seeded MT episodes it plays, on the CPU, beside
     the argmax over the same states. The policy is untrained: with the pre-assign actor held at its rule, as in MT's
@@ -84,9 +90,8 @@ def bench_policy_mt(args: argparse.Namespace) -> list[dict[str, Any]]:
     model = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
     decoder, config = MT_DECODER
     words = decoder_words(decoder, config, model.observation_space["task_mask"].shape[0])  # type: ignore[index]
-    if args.quick:  # a smoke run: the states of an episode the argmax plays, subsampled as on RBF
-        states = episode_states(model, env_id, [30_000])
-        states = states[len(states) // 2 :: 4]
+    if args.quick:  # a smoke run: an episode the argmax plays, subsampled as on RBF
+        states = smoke_states(episode_states(model, env_id, [30_000]))
     else:
         with model.decoding(decoder, **config):
             states = episode_states(model, env_id, [30_000, 30_001, 30_002])
@@ -115,8 +120,8 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
     th.manual_seed(0)
     untrained = TwoStageSAC("TAMPolicy", gym.make(env_id), seed=0, device="cpu")
     states = episode_states(trained, env_id, seeds)
-    if args.quick:  # a smoke run: every fourth state of the episode's second half (the exact decoders take up to
-        states = states[len(states) // 2 :: 4]  # seconds on its first states, where most robots are free)
+    if args.quick:
+        states = smoke_states(states)
     n_tasks = trained.observation_space["task_mask"].shape[0]
     searched = [("trained", trained, name, config, decoder_words(name, config, n_tasks)) for name, config in DECODER_ROWS]
     rows = []
