@@ -113,3 +113,36 @@ def test_fit_runs_the_decoder_in_the_loop_and_damps(rbf_model):
         fit_entity_values(rbf_model, "TaskAlloc/RBF-v0", damping=1.5)
     with pytest.raises(ValueError, match="theta must be three finite numbers"):
         EntityValueDecoder(theta=(1.0, float("nan"), 0.0))
+
+
+def test_distill_select_teacher_costs(rbf_model: TwoStageSAC):
+    """``distill_select(teacher=...)``: the covers are solved and kept under the teacher's ``costed`` view. On RBF
+    ``"recommended"`` is ``entity_value``'s costs; a surcharge under which no team pays labels nothing and leaves the
+    pointer as it was; ``exact_top`` without a surcharge is the observation's costs, the same DAgger as no teacher."""
+    from sb3_taskalloc.two_stage_sac.dagger import teacher_costs
+    from sb3_taskalloc.two_stage_sac.decoding import recommended_decoder
+
+    view = _view(rbf_model, _states(rbf_model, steps=1)[0][0])
+    valued = teacher_costs("recommended", "TaskAlloc/RBF-v0")(view).pair_cost
+    th.testing.assert_close(valued, recommended_decoder("TaskAlloc/RBF-v0").costed(view).pair_cost)
+    assert not th.equal(valued, view.pair_cost)
+    assert teacher_costs(None, None)(view) is view
+    env_id = "TaskAlloc/Almighty-v0"
+
+    def new_model() -> TwoStageSAC:
+        return TwoStageSAC("TAMPolicy", env_id, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+
+    dagger = {"iterations": 1, "episodes": 6, "epochs": 2, "seed": 0}
+    plain = new_model().distill_select(env_id, **dagger)
+    assert plain[0]["labelled_tasks"] > 0
+    assert new_model().distill_select(env_id, teacher=get_decoding_strategy("exact_top"), **dagger) == plain
+    model = new_model()
+    pointer = {k: v.clone() for k, v in model.policy.selector.state_dict().items()}
+    (priced_out,) = model.distill_select(env_id, teacher=get_decoding_strategy("exact_top", surcharge=1e6), **dagger)
+    assert priced_out["labelled_tasks"] == 0
+    assert all(th.equal(v, pointer[k]) for k, v in model.policy.selector.state_dict().items())
+    with pytest.raises(ValueError, match="no decoder was measured"):
+        model.distill_select(env_id, teacher="recommended", **dagger)
+    for bad in ("entity_value", get_decoding_strategy("sampled")):
+        with pytest.raises(ValueError, match="teacher"):
+            model.distill_select(env_id, teacher=bad, **dagger)

@@ -120,7 +120,7 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     model.learn(4, reset_num_timesteps=False, callback=callback)  # a new learn() call runs it again
     assert model.num_timesteps == 16 and callback.history is not None and len(callback.history) == 2
     assert any(not th.equal(v, weights[k]) for k, v in model.policy.selector.state_dict().items())
-    for bad in ({"iterations": 0}, {"imitation": "team"}, {"learning_rate": 0.0}):
+    for bad in ({"iterations": 0}, {"imitation": "team"}, {"learning_rate": 0.0}, {"teacher": "entity_value"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SelectDAggerCallback(**bad)  # type: ignore[arg-type]
     unregistered = TwoStageSAC(
@@ -129,6 +129,10 @@ def test_select_dagger_callback_runs_distill_select_when_learn_ends(tmp_path):
     with pytest.raises(ValueError, match="registered training env"):
         unregistered.learn(4, callback=SelectDAggerCallback())
     assert unregistered.num_timesteps == 0  # refused when learn() starts, before any step
+    almighty = TwoStageSAC("TAMPolicy", env_id, learning_starts=4, batch_size=4, policy_kwargs={"hidden_dim": 16})
+    with pytest.raises(ValueError, match="no decoder was measured"):  # no recommended decoder: no teacher's costs
+        almighty.learn(4, callback=SelectDAggerCallback(teacher="recommended"))
+    assert almighty.num_timesteps == 0
     pooled = TwoStageSAC(
         "TAMPolicy", env_id, learning_starts=4, batch_size=4, policy_kwargs={"hidden_dim": 16, "preassign": False}
     )

@@ -11,7 +11,7 @@ from gymnasium.envs.registration import EnvSpec
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_taskalloc.common.utils import check_bools
-from sb3_taskalloc.two_stage_sac.dagger import check_distill_select
+from sb3_taskalloc.two_stage_sac.dagger import check_distill_select, teacher_costs
 from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 
@@ -47,6 +47,8 @@ class SelectDAggerCallback(BaseCallback):
     :param learning_rate: Adam's step size of the fit
     :param batch_size: decoding rounds per gradient step of the fit
     :param imitation: ``"sequence"`` or ``"set"`` (see ``distill_select``)
+    :param teacher: the costs of the teacher's covers (see ``distill_select``): None, the observation's;
+        ``"recommended"``, those of the training env's recommended decoder (checked when ``learn`` starts)
     :param seed: seed of the rollouts' env; None: :func:`dagger_seed` of the model's seed (the episodes of
         ``python -m sb3_taskalloc.experiments learn --select-dagger``), or unseeded when the model has no seed
     :param after_interrupt: whether DAgger still runs when training ended early (Ctrl-C: rl-zoo3 then ends the callbacks
@@ -63,6 +65,7 @@ class SelectDAggerCallback(BaseCallback):
         learning_rate: float = 1e-3,
         batch_size: int = 32,
         imitation: str = "sequence",
+        teacher: str | None = None,
         seed: int | None = None,
         after_interrupt: bool = False,
         verbose: int = 0,
@@ -70,7 +73,8 @@ class SelectDAggerCallback(BaseCallback):
         super().__init__(verbose)
         check_bools({"after_interrupt": after_interrupt})
         self.after_interrupt = after_interrupt
-        check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)  # before training, not after
+        # Checked here, before training, not after it.
+        check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation, teacher)
         self.kwargs: dict[str, Any] = {
             "iterations": iterations,
             "episodes": episodes,
@@ -78,6 +82,7 @@ class SelectDAggerCallback(BaseCallback):
             "learning_rate": learning_rate,
             "batch_size": batch_size,
             "imitation": imitation,
+            "teacher": teacher,
         }
         self.seed = seed
         self.history: list[dict[str, float]] = []
@@ -92,6 +97,7 @@ class SelectDAggerCallback(BaseCallback):
         if spec is None:
             raise ValueError("SelectDAggerCallback needs a registered training env: its spec makes the rollouts' env")
         self.env_spec: EnvSpec = spec
+        teacher_costs(self.kwargs["teacher"], spec.id)  # an env without a recommended decoder fails here, not after training
 
     def _on_training_start(self) -> None:
         self._distilled = False

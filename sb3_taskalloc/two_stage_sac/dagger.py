@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 import sb3_taskalloc.two_stage_sac.losses as losses
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_choices, check_counts, check_finite
+from sb3_taskalloc.two_stage_sac.decoding import Decoder, recommended_decoder
 from sb3_taskalloc.two_stage_sac.policies import check_spaces
 from sb3_taskalloc.two_stage_sac.search import cover_search
 from sb3_taskalloc.two_stage_sac.updates import optimizer_step
@@ -36,13 +37,39 @@ class _CoverLabel(NamedTuple):
 
 
 def check_distill_select(
-    iterations: int, episodes: int, epochs: int, learning_rate: float, batch_size: int, imitation: str
+    iterations: int,
+    episodes: int,
+    epochs: int,
+    learning_rate: float,
+    batch_size: int,
+    imitation: str,
+    teacher: str | Decoder | None = None,
 ) -> None:
     """A clear error for the first bad argument of :meth:`TwoStageSAC.distill_select` (named as there), so that a
     schedule that runs it after training (:class:`.SelectDAggerCallback`) can refuse it before training."""
     check_counts({"iterations": iterations, "episodes": episodes, "epochs": epochs, "batch_size": batch_size})
     check_choices({"imitation": (imitation, ("sequence", "set"))})
     check_finite({"learning_rate": learning_rate})
+    if not (teacher is None or teacher == "recommended" or callable(getattr(teacher, "costed", None))):
+        raise ValueError(
+            "teacher must be None (the observation's costs), 'recommended' (the env's recommended decoder's costs) or "
+            f"a decoder with a costed() view (exact_top, entity_value), got {teacher!r}"
+        )
+
+
+def teacher_costs(teacher: str | Decoder | None, env_id: str | None) -> Callable[[ObsView], ObsView]:
+    """The pair costs DAgger's covers are solved and kept under (:func:`distill_select`'s ``teacher``): the
+    observation's own for None, else the ``costed`` view of the decoder (``"recommended"``: ``env_id``'s)."""
+    if teacher is None:
+        return lambda view: view
+    if teacher == "recommended":
+        if env_id is None:
+            raise ValueError("teacher='recommended' needs a registered env: its id names the recommended decoder")
+        teacher = recommended_decoder(env_id)
+    costed = getattr(teacher, "costed", None)
+    if not callable(costed):
+        raise ValueError(f"teacher {teacher!r} has no costed() view: choose exact_top or entity_value")
+    return costed  # type: ignore[no-any-return]
 
 
 def distill_select(
@@ -54,6 +81,7 @@ def distill_select(
     learning_rate: float = 1e-3,
     batch_size: int = 32,
     imitation: str = "sequence",
+    teacher: str | Decoder | None = None,
     seed: int | None = None,
     progress_bar: bool = False,
     callback: Callable[[dict[str, float]], bool | None] | None = None,
@@ -75,6 +103,11 @@ def distill_select(
     :param batch_size: decoding rounds per gradient step
     :param imitation: ``"sequence"``: the likelihood of each labelled pick in the label's order; ``"set"``: of
         picking any member of the cover not picked yet (:func:`.losses.cover_imitation_loss`)
+    :param teacher: the pair costs the exact covers are solved under and a team must pay by to be a label: None, the
+        observation's (the per-step objective); ``"recommended"``, those of the env's recommended decoder
+        (:func:`.decoding.recommended_decoder`: on RBF each pair's cost raised by what the robot gives up,
+        ``entity_value``); or a decoder with a ``costed`` view. The pointer still decodes on the observation's costs,
+        so it learns the value-aware teams and needs no values at decision time
     :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
     :param progress_bar: show the rollout episodes with tqdm
     :param callback: called with each iteration's figures after its fit (an evaluation, a checkpoint); ``False``
@@ -84,8 +117,10 @@ def distill_select(
         over those tasks, the last epoch's mean loss
     """
     model.check_distillable()
-    check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation)
+    check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation, teacher)
     vec_env = model._wrap_env(maybe_make_env(env, model.verbose), model.verbose)
+    spec = vec_env.get_attr("spec", indices=0)[0]
+    costed = teacher_costs(teacher, env if isinstance(env, str) else None if spec is None else spec.id)
     check_spaces(vec_env.observation_space, vec_env.action_space)
     if vec_env.observation_space != model.observation_space:
         model.policy.check_transfer(vec_env.observation_space)  # type: ignore[arg-type]
@@ -98,7 +133,7 @@ def distill_select(
     obs = vec_env.reset()
     with tqdm(total=iterations * episodes, desc="select-stage DAgger", disable=not progress_bar) as bar:
         for it in range(iterations):
-            obs, stats = _label_rollouts(model, vec_env, obs, episodes, labels, bar.update)
+            obs, stats = _label_rollouts(model, vec_env, obs, episodes, labels, bar.update, costed)
             stats["loss"] = _fit_labels(model, labels, optimizer, epochs, batch_size, rng, imitation == "set")
             history.append({"iteration": float(it + 1), **stats})
             if model.verbose >= 1:
@@ -109,11 +144,18 @@ def distill_select(
 
 
 def _label_rollouts(
-    model: TwoStageSAC, vec_env: VecEnv, obs: Any, episodes: int, labels: list[_CoverLabel], done_episode: Any
+    model: TwoStageSAC,
+    vec_env: VecEnv,
+    obs: Any,
+    episodes: int,
+    labels: list[_CoverLabel],
+    done_episode: Any,
+    costed: Callable[[ObsView], ObsView],
 ) -> tuple[Any, dict[str, float]]:
     """DAgger's data (:meth:`distill_select`): ``episodes`` episodes of the deterministic policy, every decoding
-    round labelled with each task's better team of its decode and the exact cover (:func:`.cover_search`); each
-    batch row with a labelled task joins ``labels``. :return: the last observation, and the rollouts' figures"""
+    round labelled with each task's better team of its decode and the exact cover (:func:`.cover_search`), both
+    weighed by the teacher's ``costed`` view; each batch row with a labelled task joins ``labels`` with the round's
+    own view, which the pointer decodes. :return: the last observation, and the rollouts' figures"""
     model.policy.set_training_mode(False)
     head = model.policy.selector.head
     returns: list[float] = []
@@ -125,7 +167,7 @@ def _label_rollouts(
             view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
             action = model.policy.decide(view, deterministic=True, rounds_out=rounds).env_action
             for round_view, task_of in rounds:
-                found = cover_search(head, round_view, task_of)
+                found = cover_search(head, costed(round_view), task_of)
                 slots = th.arange(found.profit.shape[1], device=task_of.device).view(1, -1, 1)
                 has = (task_of.unsqueeze(1) == slots).any(-1)  # (B, M) tasks with candidates
                 labelled = has & (found.profit > 0)  # a kept team: an abandoned decode teaches nothing
