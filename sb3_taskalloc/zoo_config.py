@@ -81,7 +81,8 @@ def _dagger_of(block: dict[str, Any], where: str) -> dict[str, Any]:
             raise ValueError(f"{where}: {DAGGER_CALLBACK}: {error}") from error
         if callback.seed is not None:
             raise ValueError(f"{where}: {DAGGER_CALLBACK} sets a seed; the experiments seed each training seed's rollouts")
-        dagger = dict(callback.kwargs)
+        # The observation's costs (teacher None) are left out, so the digests of runs before the keyword stay valid.
+        dagger = {k: v for k, v in callback.kwargs.items() if not (k == "teacher" and v is None)}
     return dagger
 
 
