@@ -13,6 +13,7 @@ import yaml
 
 import envs
 from sb3_taskalloc import SelectDAggerCallback, TAMPolicy, TwoStageSAC
+from sb3_taskalloc.two_stage_sac.dagger import teacher_costs
 from sb3_taskalloc.zoo_config import zoo_dagger
 
 pytest.importorskip("rl_zoo3", reason='rl-zoo3 is the optional "zoo" extra')
@@ -50,7 +51,7 @@ def test_configs_have_a_valid_block_per_env(name):
         assert block.pop("policy") == "TAMPolicy" and block.pop("n_timesteps") > 0
         assert block.pop("n_envs", 1) >= 1  # rl-zoo3's key: the VecEnv, not a TwoStageSAC keyword
         if block.pop("callback", None) is not None:  # rl-zoo3's key: only the DAgger callback, which the experiments run
-            zoo_dagger(env_id, CONFIGS / name)
+            teacher_costs(zoo_dagger(env_id, CONFIGS / name).get("teacher"), env_id)  # as the callback does at learn()
         assert set(block) <= algo_args, set(block) - algo_args
         assert set(block.get("policy_kwargs", {})) <= policy_args
         TwoStageSAC("TAMPolicy", env_id, **block, _init_setup_model=False)  # every setting passes the constructor's checks
