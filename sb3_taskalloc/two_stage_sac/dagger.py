@@ -119,8 +119,8 @@ def distill_select(
     model.check_distillable()
     check_distill_select(iterations, episodes, epochs, learning_rate, batch_size, imitation, teacher)
     vec_env = model._wrap_env(maybe_make_env(env, model.verbose), model.verbose)
-    spec = vec_env.get_attr("spec", indices=0)[0]
-    costed = teacher_costs(teacher, env if isinstance(env, str) else None if spec is None else spec.id)
+    spec = vec_env.get_attr("spec", indices=0)[0]  # an env id's env carries that id in its spec
+    costed = teacher_costs(teacher, None if spec is None else spec.id)
     check_spaces(vec_env.observation_space, vec_env.action_space)
     if vec_env.observation_space != model.observation_space:
         model.policy.check_transfer(vec_env.observation_space)  # type: ignore[arg-type]
