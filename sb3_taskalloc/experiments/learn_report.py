@@ -107,8 +107,9 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
         *(
             [
                 f"Trained: {run.steps:,} steps of TwoStageSAC, then {run.select_dagger} DAgger iterations teaching "
-                "the pointer the exact cover of its candidates (`TwoStageSAC.distill_select`); before DAgger: the "
-                "model after the steps alone.",
+                "the pointer the exact cover of its candidates (`TwoStageSAC.distill_select`"
+                + (f", teacher `{run.dagger_kwargs['teacher']}`" if "teacher" in run.dagger_kwargs else "")
+                + "); before DAgger: the model after the steps alone.",
                 "",
             ]
             if dagger

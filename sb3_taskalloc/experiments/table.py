@@ -323,7 +323,12 @@ class TableRun:
         callback = None
         if dagger:  # the zoo's schedule: the training steps, then the DAgger of the pointer
             from sb3_taskalloc import SelectDAggerCallback
+            from sb3_taskalloc.two_stage_sac.decoding import recommended_decoder
 
+            if dagger.get("teacher") == "recommended":  # the training env's decoder: a preset row may have none
+                train_id = row_env(self.env, "train")
+                assert train_id is not None
+                dagger = {**dagger, "teacher": recommended_decoder(train_id)}
             callback = SelectDAggerCallback(**dagger)
         model.learn(self.budget.steps(self.env, self.budget.train_episodes), callback=callback)
         self._save(model, path)
