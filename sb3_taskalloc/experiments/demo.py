@@ -37,6 +37,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 ROLLOUT_ENVS, EVAL_ENVS = 2, 60
 
 
+def dagger_schedule(env_id: str, iterations: int, episodes: int) -> dict[str, Any]:
+    """The :class:`~sb3_taskalloc.SelectDAggerCallback` keywords of the demo: the zoo block's DAgger (its loss and
+    teacher; the set loss where the block has none) at the demo's budget."""
+    from sb3_taskalloc.zoo_config import zoo_dagger
+
+    return {"imitation": "set", **zoo_dagger(env_id), "iterations": iterations, "episodes": episodes}
+
+
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     import numpy as np
@@ -53,10 +61,9 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"unknown env {args.env!r}; choose from {sorted(envs.ENV_SPECS)}")
     if args.n_envs < 1 or args.steps < args.n_envs or args.eval_episodes < 1:
         raise SystemExit("--n-envs and --eval-episodes must be >= 1, and --steps >= --n-envs")
-    # The callback's schedule (checked now, before training), run below on batched rollouts instead of one env.
-    dagger = (
-        SelectDAggerCallback(args.dagger_iterations, args.dagger_episodes, imitation="set") if args.dagger_iterations else None
-    )
+    # Checked now, before training, and run below on batched rollouts instead of one env.
+    schedule = dagger_schedule(args.env, args.dagger_iterations, args.dagger_episodes)
+    dagger = SelectDAggerCallback(**schedule) if args.dagger_iterations else None
 
     class EpisodeEnds(BaseCallback):
         """(env steps collected so far, return) of each training episode as it ends, in every env (their Monitors)."""
