@@ -204,9 +204,7 @@ class TableRun:
     @cached_property
     def _zoo(self) -> dict[str, Any]:
         """The training env's block of ``zoo_configs/two_stage_sac.yml``, read once per run."""
-        train_id = row_env(self.env, "train")
-        assert train_id is not None
-        return zoo_hyperparameters(train_id)
+        return zoo_hyperparameters(self._train_id)
 
     def _dagger(self, method: Method) -> dict[str, Any]:
         """The :class:`~sb3_taskalloc.SelectDAggerCallback` keywords a column trains with: the training env's zoo block's
@@ -222,12 +220,17 @@ class TableRun:
             return {}
         return {**zoo, **DAGGER_BUDGET.get(self.budget_name, {})}
 
+    @property
+    def _train_id(self) -> str:
+        """The id of the env the "train" row trains on (the zoo blocks are its)."""
+        train_id = row_env(self.env, "train")
+        assert train_id is not None
+        return train_id
+
     @cached_property
     def _zoo_dagger(self) -> dict[str, Any]:
         """The training env's zoo block's DAgger callback keywords (:func:`.budgets.zoo_dagger`), read once per run."""
-        train_id = row_env(self.env, "train")
-        assert train_id is not None
-        return zoo_dagger(train_id)
+        return zoo_dagger(self._train_id)
 
     def _sac_kwargs(self) -> dict[str, Any]:
         """TwoStageSAC keywords of every column and row: the training env's zoo block (on the presets too) under the
@@ -326,9 +329,7 @@ class TableRun:
             from sb3_taskalloc.two_stage_sac.decoding import recommended_decoder
 
             if dagger.get("teacher") == "recommended":  # the training env's decoder: a preset row may have none
-                train_id = row_env(self.env, "train")
-                assert train_id is not None
-                dagger = {**dagger, "teacher": recommended_decoder(train_id)}
+                dagger = {**dagger, "teacher": recommended_decoder(self._train_id)}
             callback = SelectDAggerCallback(**dagger)
         model.learn(self.budget.steps(self.env, self.budget.train_episodes), callback=callback)
         self._save(model, path)
