@@ -354,7 +354,8 @@ def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monke
 
 def test_learning_experiment_reports_no_critic_where_none_trained(tmp_path):
     """With the pre-assign actor held (``train_preassign_actor=False``) its critics do not train: the seed's record
-    holds no critic figure (NaN), and the report has no critic column and says so among the targets."""
+    holds no critic figure (NaN), and the report has no critic column (every row as wide as the header's rule) and says
+    so among the targets."""
     from sb3_taskalloc.experiments import learn
 
     kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}, "train_preassign_actor": False}
@@ -364,6 +365,8 @@ def test_learning_experiment_reports_no_critic_where_none_trained(tmp_path):
     assert math.isnan(record["q_corr"]) and math.isnan(record["advantage_corr"]) and record["trained"]
     text = Path(run.run(progress=False)).with_suffix(".md").read_text()
     assert "- critic: not trained" in text and "corr(Q, G)" not in text
+    rows = [line for line in text.splitlines() if line.startswith("|")]
+    assert {row.count("|") for row in rows} == {rows[1].count("|")}  # no empty cell where the critic columns were
 
 
 def test_table_runs_the_zoo_blocks_dagger_callback(tmp_path, monkeypatch):

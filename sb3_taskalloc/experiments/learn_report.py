@@ -49,6 +49,11 @@ def critic_trained(records: list[dict[str, Any]]) -> bool:
     return any(math.isfinite(r.get("q_corr", math.nan)) for r in records)
 
 
+def _row(cells: list[str]) -> str:
+    """One markdown table row of ``cells`` (an empty list of critic columns adds no empty cell)."""
+    return "| " + " | ".join(cells) + " |"
+
+
 def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -> str:
     """:func:`seed_mean` formatted, with the number of seeds it is over when some seeds lack the figure ("—" when none
     has it)."""
@@ -124,16 +129,15 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
             if stages
             else []
         ),
-        "| seed | " + " | ".join(headers) + " | " + " | ".join(critic_headers) + " | training s |",
+        _row(["seed", *headers, *critic_headers, "training s"]),
         "|---" * (len(shown) + len(critic) + 2) + "|",
     ]
     for k, r in enumerate(records):
-        cells = " | ".join(f"{means[c][k]:.1f}" for c in shown)
-        figures = " | ".join(f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic)
-        lines.append(f"| {r['seed']} | {cells} | {figures} | {r['train_seconds']:.0f} |")
-    summary = " | ".join(f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown)
-    critic_means = " | ".join(_seed_mean_cell(records, c, 1 if c == "advantage_pairs" else 2) for c in critic)
-    lines.append(f"| mean ± std | {summary} | {critic_means} | |")
+        figures = [f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic]
+        lines.append(_row([str(r["seed"]), *(f"{means[c][k]:.1f}" for c in shown), *figures, f"{r['train_seconds']:.0f}"]))
+    summary = [f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown]
+    critic_means = [_seed_mean_cell(records, c, 1 if c == "advantage_pairs" else 2) for c in critic]
+    lines.append(_row(["mean ± std", *summary, *critic_means, ""]))
     lines += ["", *targets(run, means, records)]
     return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
 
