@@ -934,7 +934,8 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
 def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monkeypatch):
     """``more_episodes`` evaluates the finished models on the held-out reset seeds that follow the run's own (never
     another seed's), against Greedy only, and reports each seed over the run's and the further episodes, paired by
-    episode; bad values are refused before any work."""
+    episode; zero-shot, over the zero-shot re-evaluation's rows and the further ones; bad values are refused before
+    any work."""
     import json
 
     import numpy as np
@@ -966,10 +967,19 @@ def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monke
         assert f"| {row['seed']} | 5 | " in text and f"| {trained:.1f} | " in text
         assert f"| {lead.mean():+.1f} ± {lead.std(ddof=1) / np.sqrt(5):.1f} |" in text
     assert "seeds over all episodes" in text
+    with pytest.raises(FileNotFoundError, match="run the zero-shot re-evaluation first"):  # zero-shot: over its own rows
+        run.reevaluate("Almighty", more_episodes=3)
+    own = {row["seed"]: row for row in json.loads(run.zero_shot("Almighty").with_suffix(".json").read_text())["seeds"]}
+    shifted = run.reevaluate("Almighty", more_episodes=3)
+    assert shifted.name == "Almighty_zero_shot_Almighty_more_episodes_3.md"
+    assert "zero-shot, 3 further episodes per seed" in shifted.read_text()
+    for row in json.loads(shifted.with_suffix(".json").read_text())["seeds"]:
+        lead = np.array(own[row["seed"]]["trained"] + row["trained"]) - np.array(own[row["seed"]]["Greedy"] + row["Greedy"])
+        assert f"| {lead.mean():+.1f} ± {lead.std(ddof=1) / np.sqrt(5):.1f} |" in shifted.read_text()
     for bad, match in ((-1, "more_episodes must be a positive integer"), (True, "positive integer"), (99, "at most 100")):
         with pytest.raises(ValueError, match=match):
             run.reevaluate(more_episodes=bad)
-    with pytest.raises(ValueError, match="no shift and no decoder"):
+    with pytest.raises(ValueError, match="no decoder"):
         run.reevaluate(decoder="team_search", more_episodes=2)
     monkeypatch.setattr(learn.LearnRun, "run", lambda *a, **k: pytest.fail("trained before the arguments were checked"))
     argv = ["learn", "--env", "Almighty", "--seeds", "1", "--steps", "3", "--eval-episodes", "2", "--out", str(tmp_path)]

@@ -137,8 +137,8 @@ def _add_learn(sub: Any) -> None:
     )  # fmt: skip
     learn.add_argument(
         "--more-episodes", type=int, default=0, metavar="N",
-        help="then evaluate the trained and untrained models and Greedy on N further held-out episodes per seed, and "
-        "count the seeds above Greedy over all of them",
+        help="then evaluate the trained and untrained models and Greedy on N further held-out episodes per seed (and "
+        "on --zero-shot's env), and count the seeds above Greedy over all of them",
     )  # fmt: skip
 
 
@@ -226,7 +226,8 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         decoded = {"decoder": args.decoder, "decoder_kwargs": args.decoder_kwargs}
         evaluations += [(None, decoded), *([(args.zero_shot, decoded)] if args.zero_shot else [])]
     if args.more_episodes:
-        evaluations.append((None, {"more_episodes": args.more_episodes}))
+        more = {"more_episodes": args.more_episodes}
+        evaluations += [(None, more), *([(args.zero_shot, more)] if args.zero_shot else [])]
     for shift, searched in evaluations:
         again = run.reevaluate(shift, **searched)
         print(again.read_text())

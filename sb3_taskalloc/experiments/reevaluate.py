@@ -34,11 +34,9 @@ def _reevaluation_labels(shift: str | None, decoder: str, config: dict[str, Any]
         parts.append((f"decoder_{decoder}{settings}", flag))
     if more_episodes:
         parts.append((f"more_episodes_{more_episodes}", f"more-episodes {more_episodes}"))
-    first = "held-out episodes"
-    if shift:
-        first = "zero-shot"
-    elif more_episodes:
-        first = f"{more_episodes} further held-out episodes per seed"
+    further = f"{more_episodes} further episodes per seed" if shift else f"{more_episodes} further held-out episodes per seed"
+    first = "zero-shot" if shift else "held-out episodes"
+    first = (f"zero-shot, {further}" if shift else further) if more_episodes else first
     words = [first] if decoder == "argmax" else [first, f"decoded by {decoder} {config or ''}".rstrip()]
     return "".join(f"_{part}" for part, _ in parts), ", ".join(words), "".join(f" --{flag}" for _, flag in parts)
 
@@ -59,9 +57,10 @@ def reevaluate(
     re-evaluation resumes at the seed it stopped in and a change of code that moves those decisions evaluates again.
 
     :param more_episodes: instead, the plain argmax on this many further held-out episodes per seed of the training
-        env (the reset seeds that follow the run's own, :func:`eval_seeds`), against Greedy only; the report also
-        counts the seeds above Greedy over all the run's and the further episodes, whose seed means carry a smaller
-        standard error than the run's own (``<out>/<env>_more_episodes_<N>``)
+        env or of ``shift`` (the reset seeds that follow the run's own, :func:`eval_seeds`), against Greedy only; the
+        report also counts the seeds above Greedy over all the run's (or its zero-shot's) and the further episodes,
+        whose seed means carry a smaller standard error than the run's own (``<out>/<env>[_zero_shot_<shift>]
+        _more_episodes_<N>``; with a shift, after the zero-shot re-evaluation itself)
     :return: the Markdown path."""
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc import baselines as b
@@ -71,8 +70,8 @@ def reevaluate(
     config = dict(decoder_kwargs or {})
     strategy = get_decoding_strategy(decoder, **config)  # a bad name or setting fails before any evaluation
     check_more_episodes(run, more_episodes)
-    if more_episodes and (shift or decoder != "argmax"):
-        raise ValueError("more_episodes evaluates the plain argmax on the training env: no shift and no decoder")
+    if more_episodes and decoder != "argmax":
+        raise ValueError("more_episodes evaluates the plain argmax: no decoder")
     suffix, how, flags = _reevaluation_labels(shift, decoder, config, more_episodes)
     stem = Path(run.out) / (run.env + suffix)  # a setting's number may hold a dot: the suffixes are appended, not replaced
     rows: list[dict[str, Any]] = []
@@ -112,7 +111,7 @@ def reevaluate(
     atomic_write_text(stem.with_name(stem.name + ".json"), json.dumps(settings))
     title = f"# {env_id}: {how}, the models of `{run.env}.md` ({run.steps:,} steps on {run.env_id})"
     lines = [title, "", f"Command: `{run.command()}{flags}`", *report_lines(rows, with_milp=not (shift or more_episodes))]
-    lines += over_all_episodes(run, rows) if more_episodes else []
+    lines += over_all_episodes(run, rows, shift) if more_episodes else []
     return atomic_write_text(stem.with_name(stem.name + ".md"), "\n".join(lines) + "\n")
 
 
@@ -148,14 +147,27 @@ def check_more_episodes(run: LearnRun, more_episodes: int) -> None:
         )
 
 
-def over_all_episodes(run: LearnRun, rows: list[dict[str, Any]]) -> list[str]:
+def _own_path(run: LearnRun, seed: int, shift: str | None) -> Path:
+    """The seed's saved row of the run's own held-out episodes: the run's, or with ``shift`` its zero-shot's."""
+    if not shift:
+        return run.seed_path(seed)
+    path = run.seed_path(seed).with_name(f"{run.env}_zero_shot_{shift}_seed_{seed}_{run.key}.json")
+    if not path.exists():
+        raise FileNotFoundError(f"seed {seed} has no zero-shot row at {path}: run the zero-shot re-evaluation first")
+    return path
+
+
+def over_all_episodes(run: LearnRun, rows: list[dict[str, Any]], shift: str | None = None) -> list[str]:
     """The report's lines of :meth:`reevaluate`'s ``more_episodes``: each seed over the run's own held-out episodes
-    and the further ones together, with the standard error of its mean lead over Greedy (paired by episode)."""
+    (with ``shift``, its zero-shot re-evaluation's) and the further ones together, with the standard error of its mean
+    lead over Greedy (paired by episode)."""
     header = "| seed | episodes | untrained | trained | Greedy | trained − Greedy ± s.e. |"
     lines = ["", "Over the run's own and the further held-out episodes together:", "", header, "|---" * 6 + "|"]
     leads, gains = [], []
     for row in rows:
-        own = json.loads(run.seed_path(row["seed"]).read_text())
+        own = json.loads(_own_path(run, row["seed"], shift).read_text())
+        if own.get("model_digest", row["model_digest"]) != row["model_digest"]:  # the run's own rows carry none
+            raise ValueError(f"seed {row['seed']}'s zero-shot row is of another model: run the zero-shot re-evaluation again")
         both = {c: np.array(own[c] + row[c]) for c in ("untrained", "trained", "Greedy")}
         lead = both["trained"] - both["Greedy"]
         leads.append(lead.mean())
