@@ -92,9 +92,11 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
     critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
     critic = critic if critic_trained(records) else []
     critic_headers = [CRITIC_COLUMNS[c] for c in critic]
+    first, last = run.seed_range[0], run.seed_range[-1]
+    span = f"{first}" if first == last else f"{first}–{last}"
     lines = [
-        f"# {run.env_id}: TwoStageSAC trained {run.steps:,} steps, {len(records)} seeds"
-        + (f" ({run.seed_range[0]}–{run.seed_range[-1]})" if run.first_seed else "")
+        f"# {run.env_id}: TwoStageSAC trained {run.steps:,} steps, {len(records)} seed{'s' if len(records) > 1 else ''}"
+        + (f" ({span})" if run.first_seed else "")
         + f" × {run.eval_episodes} held-out episodes"
         + (" (trained on CUDA)" if run.device == "cuda" else ""),
         "",
