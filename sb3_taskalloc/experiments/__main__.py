@@ -221,13 +221,14 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     path = run.run(jobs=args.jobs)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
-    evaluations: list[tuple[str | None, dict[str, Any]]] = [(args.zero_shot, {})] if args.zero_shot else []
+    extras: list[dict[str, Any]] = []  # each on the training env, then on --zero-shot's
     if args.decoder != "argmax":
-        decoded = {"decoder": args.decoder, "decoder_kwargs": args.decoder_kwargs}
-        evaluations += [(None, decoded), *([(args.zero_shot, decoded)] if args.zero_shot else [])]
+        extras.append({"decoder": args.decoder, "decoder_kwargs": args.decoder_kwargs})
     if args.more_episodes:
-        more = {"more_episodes": args.more_episodes}
-        evaluations += [(None, more), *([(args.zero_shot, more)] if args.zero_shot else [])]
+        extras.append({"more_episodes": args.more_episodes})
+    shifts = [None, *([args.zero_shot] if args.zero_shot else [])]
+    evaluations: list[tuple[str | None, dict[str, Any]]] = [(args.zero_shot, {})] if args.zero_shot else []
+    evaluations += [(shift, extra) for extra in extras for shift in shifts]
     for shift, searched in evaluations:
         again = run.reevaluate(shift, **searched)
         print(again.read_text())

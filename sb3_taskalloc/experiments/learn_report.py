@@ -91,7 +91,7 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
     critic = ["q_corr", "q_scale", *(CRITIC_BRANCHED if has_branched(records) else [])]
     critic += CRITIC_ADVANTAGE if has_branched(records, CRITIC_ADVANTAGE) else []
     critic = critic if critic_trained(records) else []
-    critic_headers = [CRITIC_COLUMNS[c] for c in critic]
+    header = ["seed", *headers, *(CRITIC_COLUMNS[c] for c in critic), "training s"]
     first, last = run.seed_range[0], run.seed_range[-1]
     span = f"{first}" if first == last else f"{first}–{last}"
     lines = [
@@ -131,8 +131,8 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
             if stages
             else []
         ),
-        _row(["seed", *headers, *critic_headers, "training s"]),
-        "|---" * (len(shown) + len(critic) + 2) + "|",
+        _row(header),
+        "|---" * len(header) + "|",
     ]
     for k, r in enumerate(records):
         figures = [f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic]

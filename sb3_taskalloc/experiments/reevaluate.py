@@ -34,9 +34,12 @@ def _reevaluation_labels(shift: str | None, decoder: str, config: dict[str, Any]
         parts.append((f"decoder_{decoder}{settings}", flag))
     if more_episodes:
         parts.append((f"more_episodes_{more_episodes}", f"more-episodes {more_episodes}"))
-    further = f"{more_episodes} further episodes per seed" if shift else f"{more_episodes} further held-out episodes per seed"
-    first = "zero-shot" if shift else "held-out episodes"
-    first = (f"zero-shot, {further}" if shift else further) if more_episodes else first
+    if not more_episodes:
+        first = "zero-shot" if shift else "held-out episodes"
+    elif shift:
+        first = f"zero-shot, {more_episodes} further episodes per seed"
+    else:
+        first = f"{more_episodes} further held-out episodes per seed"
     words = [first] if decoder == "argmax" else [first, f"decoded by {decoder} {config or ''}".rstrip()]
     return "".join(f"_{part}" for part, _ in parts), ", ".join(words), "".join(f" --{flag}" for _, flag in parts)
 
@@ -83,7 +86,7 @@ def reevaluate(
         trained = TwoStageSAC.load(path, env=gym.make(env_id), device="cpu")
         trained.set_decoder(decoder, **config)
         decisions = decision_digest(trained, env_id)
-        done = run.seed_path(seed).with_name(f"{stem.name}_seed_{seed}_{run.key}.json")
+        done = _row_path(run, stem.name, seed)
         saved = json.loads(done.read_text()) if done.exists() else {}
         if saved.get("model_digest") == model_digest and saved.get("decisions") == decisions:
             rows.append(saved)
@@ -147,11 +150,16 @@ def check_more_episodes(run: LearnRun, more_episodes: int) -> None:
         )
 
 
+def _row_path(run: LearnRun, stem_name: str, seed: int) -> Path:
+    """Where a re-evaluation named ``stem_name`` (:func:`_reevaluation_labels`' suffix after the env) saves ``seed``'s row."""
+    return run.seed_path(seed).with_name(f"{stem_name}_seed_{seed}_{run.key}.json")
+
+
 def _own_path(run: LearnRun, seed: int, shift: str | None) -> Path:
     """The seed's saved row of the run's own held-out episodes: the run's, or with ``shift`` its zero-shot's."""
     if not shift:
         return run.seed_path(seed)
-    path = run.seed_path(seed).with_name(f"{run.env}_zero_shot_{shift}_seed_{seed}_{run.key}.json")
+    path = _row_path(run, run.env + _reevaluation_labels(shift, "argmax", {}, 0)[0], seed)
     if not path.exists():
         raise FileNotFoundError(f"seed {seed} has no zero-shot row at {path}: run the zero-shot re-evaluation first")
     return path
