@@ -126,7 +126,7 @@ def test_distill_select_teacher_costs(rbf_model: TwoStageSAC):
     valued = teacher_costs("recommended", "TaskAlloc/RBF-v0")(view).pair_cost
     th.testing.assert_close(valued, recommended_decoder("TaskAlloc/RBF-v0").costed(view).pair_cost)
     assert not th.equal(valued, view.pair_cost)
-    assert teacher_costs(None, None)(view) is view
+    assert teacher_costs(None, None) is None  # the pointer's own costs (TAMPolicy.select_view)
     env_id = "TaskAlloc/Almighty-v0"
 
     def new_model() -> TwoStageSAC:
@@ -146,3 +146,68 @@ def test_distill_select_teacher_costs(rbf_model: TwoStageSAC):
     for bad in ("entity_value", get_decoding_strategy("sampled")):
         with pytest.raises(ValueError, match="teacher"):
             model.distill_select(env_id, teacher=bad, **dagger)
+
+
+def test_select_values_put_the_values_in_the_pointers_costs(tmp_path):
+    """``TAMPolicy(select_values=...)``: the pointer's view carries c_ij + v_ij (entity_value's costs with σ = 0), its
+    argmax teams are the decode on that view, which differs from the decode on the observation's costs (on the full
+    RBF env: with twelve robots the teams hardly compete), and a saved model keeps the values."""
+    from sb3_taskalloc.two_stage_sac.select_stage import decode_round
+
+    theta = (-0.114, -0.041, 0.010)
+    env = gym.make("TaskAlloc/RBF-v0")
+    valued = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16, "select_values": {"theta": theta}})
+    plain = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16})
+    obs, _ = env.reset(seed=3)
+    differs = 0
+    for _ in range(4):
+        view = _view(valued, obs)
+        costed = valued.policy.select_view(view)
+        th.testing.assert_close(costed.pair_cost, EntityValueDecoder(theta=theta).costed(view).pair_cost)
+        assert plain.policy.select_view(view) is view  # no values: the observation's own costs
+        rounds: list = []
+        with th.inference_mode():
+            decision = valued.policy.decide(view, deterministic=True, rounds_out=rounds)
+            first = decode_round(valued.policy.selector.head, costed, rounds[0][1], deterministic=True)
+            observed = decode_round(valued.policy.selector.head, view, rounds[0][1], deterministic=True)
+        assert th.equal(decision.pick_rank, first.rank) and th.equal(decision.kept, first.kept())
+        differs += not th.equal(observed.rank, first.rank)
+        obs = env.step(decision.env_action[0].numpy())[0]
+    assert differs > 0
+    valued.save(tmp_path / "valued.zip")
+    loaded = TwoStageSAC.load(tmp_path / "valued.zip")
+    assert loaded.policy.select_values == valued.policy.select_values
+    for bad in ({"theta": (1.0, 2.0)}, {"theta": (1.0, float("nan"), 0.0)}, {"theta": theta, "grid": 7}, [1.0, 2.0, 3.0]):
+        with pytest.raises(ValueError, match="select_values"):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs={"select_values": bad})
+
+
+def test_select_values_reach_training_and_dagger(monkeypatch):
+    """Values that price every pair out (θ_free = 10⁶) keep no team at decision time, label nothing in DAgger and
+    reach the select stage's SAC losses, which train on the pointer's own costs."""
+    import sb3_taskalloc.two_stage_sac.losses as losses
+
+    env_id = "TaskAlloc/Almighty-v0"
+
+    def new_model(select_values: dict | None) -> TwoStageSAC:
+        kwargs = {"hidden_dim": 16, "select_values": select_values}
+        return TwoStageSAC("TAMPolicy", env_id, seed=0, learning_starts=8, batch_size=8, policy_kwargs=kwargs)
+
+    priced_out = new_model({"theta": (1e6, 0.0, 0.0)})
+    obs, _ = gym.make(env_id).reset(seed=0)
+    M = obs["task_mask"].shape[0]
+    assert (priced_out.predict(obs, deterministic=True)[0] == M).all()
+    assert (new_model(None).predict(obs, deterministic=True)[0] < M).any()
+    dagger = {"iterations": 1, "episodes": 4, "epochs": 1, "seed": 0}
+    assert priced_out.distill_select(env_id, **dagger)[0]["labelled_tasks"] == 0
+    assert new_model(None).distill_select(env_id, **dagger)[0]["labelled_tasks"] > 0
+    seen: list[float] = []
+    select_losses = losses.select_losses
+
+    def spy(selector, critic, critic_target, view, *args, **kwargs):
+        seen.append(float(view.pair_cost[view.valid].min()))
+        return select_losses(selector, critic, critic_target, view, *args, **kwargs)
+
+    monkeypatch.setattr(losses, "select_losses", spy)
+    new_model({"theta": (1e6, 0.0, 0.0)}).learn(12)
+    assert seen and min(seen) >= 1e6

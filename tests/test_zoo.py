@@ -104,3 +104,16 @@ def test_zoo_optimize_two_trials(tmp_path):
 def test_zoo_usage_error():
     proc = subprocess.run([sys.executable, "-m", "sb3_taskalloc.zoo", "fly"], cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode != 0 and "usage" in proc.stderr
+
+
+def test_rbf_block_prices_the_pointer_with_the_recommended_values():
+    """RBF's pointer decodes on the recommended decoder's costs: the block's θ is ``entity_value``'s, and the shifted
+    RBF envs, where no value was fitted, keep the observation's costs."""
+    from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
+
+    config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
+    name, decoder = RECOMMENDED_DECODERS["TaskAlloc/RBF-v0"]
+    assert name == "entity_value"
+    assert tuple(config["TaskAlloc/RBF-v0"]["policy_kwargs"]["select_values"]["theta"]) == tuple(decoder["theta"])
+    for shifted in ("TaskAlloc/RBF-EntityShift-v0", "TaskAlloc/RBF-TaskShift-v0"):
+        assert "select_values" not in config[shifted]["policy_kwargs"]

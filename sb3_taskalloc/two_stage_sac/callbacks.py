@@ -47,7 +47,7 @@ class SelectDAggerCallback(BaseCallback):
     :param learning_rate: Adam's step size of the fit
     :param batch_size: decoding rounds per gradient step of the fit
     :param imitation: ``"sequence"`` or ``"set"`` (see ``distill_select``)
-    :param teacher: the costs of the teacher's covers (see ``distill_select``): None, the observation's;
+    :param teacher: the costs of the teacher's covers (see ``distill_select``): None, the pointer's own;
         ``"recommended"``, those of the training env's recommended decoder (checked when ``learn`` starts)
     :param seed: seed of the rollouts' env; None: :func:`dagger_seed` of the model's seed (the episodes of
         ``python -m sb3_taskalloc.experiments learn --select-dagger``), or unseeded when the model has no seed

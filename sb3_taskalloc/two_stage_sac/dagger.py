@@ -57,11 +57,12 @@ def check_distill_select(
         )
 
 
-def teacher_costs(teacher: str | Decoder | None, env_id: str | None) -> Callable[[ObsView], ObsView]:
-    """The pair costs DAgger's covers are solved and kept under (:func:`distill_select`'s ``teacher``): the
-    observation's own for None, else the ``costed`` view of the decoder (``"recommended"``: ``env_id``'s)."""
+def teacher_costs(teacher: str | Decoder | None, env_id: str | None) -> Callable[[ObsView], ObsView] | None:
+    """The pair costs DAgger's covers are solved and kept under (:func:`distill_select`'s ``teacher``): None for the
+    pointer's own (:meth:`.TAMPolicy.select_view`), else the ``costed`` view of the decoder (``"recommended"``:
+    ``env_id``'s)."""
     if teacher is None:
-        return lambda view: view
+        return None
     if teacher == "recommended":
         if env_id is None:
             raise ValueError("teacher='recommended' needs a registered env: its id names the recommended decoder")
@@ -104,10 +105,11 @@ def distill_select(
     :param imitation: ``"sequence"``: the likelihood of each labelled pick in the label's order; ``"set"``: of
         picking any member of the cover not picked yet (:func:`.losses.cover_imitation_loss`)
     :param teacher: the pair costs the exact covers are solved under and a team must pay by to be a label: None, the
-        observation's (the per-step objective); ``"recommended"``, those of the env's recommended decoder
+        pointer's own (the observation's, the per-step objective, plus the policy's ``select_values`` if any);
+        ``"recommended"``, those of the env's recommended decoder
         (:func:`.decoding.recommended_decoder`: on RBF each pair's cost raised by what the robot gives up,
-        ``entity_value``); or a decoder with a ``costed`` view. The pointer still decodes on the observation's costs,
-        so it learns the value-aware teams and needs no values at decision time
+        ``entity_value``); or a decoder with a ``costed`` view. The pointer still decodes on its own costs, so it
+        learns the value-aware teams and needs no values at decision time
     :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
     :param progress_bar: show the rollout episodes with tqdm
     :param callback: called with each iteration's figures after its fit (an evaluation, a checkpoint); ``False``
@@ -150,12 +152,13 @@ def _label_rollouts(
     episodes: int,
     labels: list[_CoverLabel],
     done_episode: Any,
-    costed: Callable[[ObsView], ObsView],
+    costed: Callable[[ObsView], ObsView] | None,
 ) -> tuple[Any, dict[str, float]]:
     """DAgger's data (:meth:`distill_select`): ``episodes`` episodes of the deterministic policy, every decoding
     round labelled with each task's better team of its decode and the exact cover (:func:`.cover_search`), both
-    weighed by the teacher's ``costed`` view; each batch row with a labelled task joins ``labels`` with the round's
-    own view, which the pointer decodes. :return: the last observation, and the rollouts' figures"""
+    weighed by the teacher's ``costed`` view (None: the pointer's own); each batch row with a labelled task joins
+    ``labels`` with the round's view on the pointer's costs (:meth:`.TAMPolicy.select_view`), which it decodes.
+    :return: the last observation, and the rollouts' figures"""
     model.policy.set_training_mode(False)
     head = model.policy.selector.head
     returns: list[float] = []
@@ -166,8 +169,9 @@ def _label_rollouts(
         with th.inference_mode():
             view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
             action = model.policy.decide(view, deterministic=True, rounds_out=rounds).env_action
-            for round_view, task_of in rounds:
-                found = cover_search(head, costed(round_view), task_of)
+            for observed, task_of in rounds:
+                round_view = model.policy.select_view(observed)
+                found = cover_search(head, round_view if costed is None else costed(observed), task_of)
                 slots = th.arange(found.profit.shape[1], device=task_of.device).view(1, -1, 1)
                 has = (task_of.unsqueeze(1) == slots).any(-1)  # (B, M) tasks with candidates
                 labelled = has & (found.profit > 0)  # a kept team: an abandoned decode teaches nothing

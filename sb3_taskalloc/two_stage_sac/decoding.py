@@ -27,7 +27,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search, exact_covers, sampled_search, select_search
-from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round, env_action_of
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, env_action_of
 from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
 if TYPE_CHECKING:
@@ -85,8 +85,9 @@ class Decoder:
         return th.where(view.assignable, dist.get_actions(self.deterministic), -1), None
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """(B, M, N) each task's pick steps among its candidates ``task_of`` and (B, M) the tasks kept."""
-        st = decode_round(policy.selector.head, view, task_of, self.deterministic)
+        """(B, M, N) each task's pick steps among its candidates ``task_of`` and (B, M) the tasks kept, decoded on the
+        pointer's own costs (:meth:`~.TAMPolicy.select_view`)."""
+        st = policy.select_round(view, task_of, self.deterministic)
         return st.rank, st.kept()
 
 
@@ -115,7 +116,7 @@ class UniformDecoder(Decoder):
         return th.where(view.assignable, uniform.get_actions(False), -1), None
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        st = decode_round(policy.selector.head, view, task_of, deterministic=False, uniform=True)
+        st = policy.select_round(view, task_of, deterministic=False, uniform=True)
         return st.rank, st.kept()
 
 
@@ -139,7 +140,8 @@ class PreassignSearchDecoder(Decoder):
         if not first_round or self.samples == 1:
             return super().preassign(policy, view, dist, first_round)
         head = policy.selector.head
-        found = sampled_search(dist, head, view, self.samples, self.temperature, self.stream(view.pair_cost.device))
+        stream = self.stream(view.pair_cost.device)
+        found = sampled_search(dist, head, policy.select_view(view), self.samples, self.temperature, stream)
         return found.candidates, None
 
 
@@ -161,7 +163,7 @@ class TeamSearchDecoder(Decoder):
         self.exact = exact
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        head = policy.selector.head
+        head, view = policy.selector.head, policy.select_view(view)
         found = select_search(head, view, task_of, self.samples, self.temperature, self.stream(view.pair_cost.device))
         if self.exact:
             found = cover_search(head, view, task_of, against=found)
@@ -235,7 +237,7 @@ class ExactTopDecoder(ExactCoversDecoder):
 
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         head = policy.selector.head
-        if self.plain:
+        if self.plain and policy.select_values is None:
             # The candidates are the round's exact cover, whose every team is the most profitable of its own members, so
             # the exact cover of the candidates is the candidates themselves and is not solved again: each task keeps the
             # pointer's argmax among them (the exact cover's decode is that same decode). Only a HiGHS row stopped at its
@@ -245,7 +247,7 @@ class ExactTopDecoder(ExactCoversDecoder):
         # On other costs than the pointer's, the pointer's argmax team (decoded on the costs it was trained on) is weighed
         # by the round's objective against the exact cover among the candidates, which the round's solve already chose.
         costed = self.costed(view)
-        base = decode_round(head, view, task_of, deterministic=True)
+        base = policy.select_round(view, task_of, deterministic=True)
         members = (base.rank >= 0).float()  # (B, M, N)
         p0 = base.kept() * (view.reward - (members * costed.pair_cost.transpose(1, 2)).sum(-1))
         found = cover_search(head, costed, task_of, against=SelectSearchResult(base.rank, p0, p0), members=task_of)
@@ -371,7 +373,7 @@ def decide_pooled(policy: TAMPolicy, view: ObsView, deterministic: bool, uniform
         open_j = view.task_mask[rows, j]
         task_of = th.where(pool & open_j.unsqueeze(-1), j.unsqueeze(-1), -1)
         candidates[rows, j] = task_of >= 0
-        st = decode_round(policy.selector.head, view, task_of, deterministic, uniform)
+        st = policy.select_round(view, task_of, deterministic, uniform)
         kept_r = st.kept()
         rank = th.where(st.rank >= 0, st.rank, rank)
         kept = kept | kept_r

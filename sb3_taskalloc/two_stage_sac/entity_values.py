@@ -55,6 +55,42 @@ def pair_values(view: ObsView, theta: Sequence[float], grid_size: int) -> th.Ten
     return values.to(view.pair_cost.dtype)
 
 
+class SelectValues(NamedTuple):
+    """The select stage's pair costs with each entity's learned future value: the pointer decodes (and is trained) on
+    c_ij + v_ij (``TAMPolicy(select_values=...)``), the costs that :class:`EntityValueDecoder` solves on with σ = 0.
+
+    :param theta: (θ_free, θ_τ, θ_e), e.g. the recommended decoder's (``settings.RECOMMENDED_DECODERS``)
+    :param grid_size: the grid's side, where tasks arrive at uniform cells
+    """
+
+    theta: tuple[float, float, float]
+    grid_size: int = 7
+
+    @classmethod
+    def of(cls, config: dict[str, Any] | None) -> SelectValues | None:
+        """The values of a policy's ``select_values`` keyword (None: none), with a clear error for a bad one."""
+        if config is None:
+            return None
+        if not isinstance(config, dict) or not {"theta"} <= set(config) <= {"theta", "grid_size"}:
+            raise ValueError(f"select_values must be None or a dict of 'theta' and 'grid_size', got {config!r}")
+        theta = config["theta"]
+        numbers = isinstance(theta, list | tuple) and all(isinstance(x, int | float) and np.isfinite(x) for x in theta)
+        if not numbers or len(theta) != 3:
+            raise ValueError(f"select_values['theta'] must be three finite numbers (θ_free, θ_τ, θ_e), got {theta!r}")
+        grid_size = config.get("grid_size", 7)
+        check_counts({"select_values['grid_size']": grid_size})
+        return cls((float(theta[0]), float(theta[1]), float(theta[2])), grid_size)
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """The ``select_values`` keyword that rebuilds these values (what a saved model stores)."""
+        return {"theta": list(self.theta), "grid_size": self.grid_size}
+
+    def costed(self, view: ObsView) -> ObsView:
+        """``view`` with each pair's cost raised by what its entity gives up (:func:`pair_values`)."""
+        return view._replace(pair_cost=view.pair_cost + pair_values(view, self.theta, self.grid_size))
+
+
 @register_decoder
 class EntityValueDecoder(ExactTopDecoder):
     """``exact_top`` whose pair costs also carry each entity's learned future value: the pair i → j costs

@@ -34,6 +34,7 @@ from sb3_taskalloc.two_stage_sac.decoding import (
     decide_preassigned,
     get_decoding_strategy,
 )
+from sb3_taskalloc.two_stage_sac.entity_values import SelectValues
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
@@ -105,6 +106,9 @@ class TAMPolicy(BasePolicy):
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`,
         implementation detail 10); ``False``: PyTorch's default initialisation (the paper)
+    :param select_values: each entity's learned future value in the pointer's pair costs, ``{"theta": (θ_free, θ_τ,
+        θ_e), "grid_size": 7}`` (:class:`~.entity_values.SelectValues`; grid envs with Manhattan travel, RBF's zoo
+        config): the select stage decodes, trains and is distilled on c_ij + v_ij; None: on the observation's costs
     :param rule_weights: with ``heuristic_init``, the pre-assign rule's weights on the fixed pair features by name
         (:data:`~sb3_taskalloc.common.torch_layers.PAIR_FEATURE_NAMES`) over ``{"pair_cost": -3.0}``, e.g.
         ``{"margin": 3.0}`` (MT's zoo config); ignored by policies without the pre-assign pair read-out
@@ -141,6 +145,7 @@ class TAMPolicy(BasePolicy):
         rounds: int = 1,
         heuristic_init: bool = True,
         rule_weights: dict[str, float] | None = None,
+        select_values: dict[str, Any] | None = None,
         activation_fn: type[nn.Module] = nn.ReLU,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
@@ -192,6 +197,7 @@ class TAMPolicy(BasePolicy):
         self.decoder: Decoder = get_decoding_strategy("argmax")
         self.heuristic_init = heuristic_init
         self.rule_weights = check_rule_weights(rule_weights, heuristic_init)
+        self.select_values = SelectValues.of(select_values)
         self.activation_fn = activation_fn
         self._build(lr_schedule)
 
@@ -329,6 +335,7 @@ class TAMPolicy(BasePolicy):
                 rounds=self.rounds,
                 heuristic_init=self.heuristic_init,
                 rule_weights=self.rule_weights or None,
+                select_values=None if self.select_values is None else self.select_values.config,
                 activation_fn=self.activation_fn,
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
@@ -377,9 +384,13 @@ class TAMPolicy(BasePolicy):
             raise TypeError(f"TAMPolicy needs the Dict observations of a TaskAlloc env, got {type(obs).__name__}")
         return parse_obs(obs)
 
+    def select_view(self, view: ObsView) -> ObsView:
+        """The view the pointer decodes and trains on: ``view`` with :attr:`select_values` in its pair costs, if any."""
+        return view if self.select_values is None else self.select_values.costed(view)
+
     def select_round(self, view: ObsView, task_of: th.Tensor, deterministic: bool, uniform: bool = False) -> SelectState:
-        """Decode the teams of every task of one round in parallel (see :func:`.select_stage.decode_round`)."""
-        return decode_round(self.selector.head, view, task_of, deterministic, uniform)
+        """Decode the teams of every task of one round in parallel on :meth:`select_view` (:func:`.decode_round`)."""
+        return decode_round(self.selector.head, self.select_view(view), task_of, deterministic, uniform)
 
     def decide(
         self,

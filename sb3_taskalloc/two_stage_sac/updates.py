@@ -209,7 +209,7 @@ class SelectUpdate:
         alpha = temperature(m.log_select_ent_coef, m.select_ent_coef_tensor)
         logs["select_ent_coef"].append(alpha.detach())
         rows = slice(0, cfg["batch_size"])
-        view = ObsView(*(x[rows] for x in obs))
+        view = m.policy.select_view(ObsView(*(x[rows] for x in obs)))  # the pointer's own costs
         candidates = data.candidates[rows]
         # Target Q^k(s_t, a_t) → r_t + (1 − done_t)·Σ_a π(a|s_{t+1})[min_k Q̄^k(s_{t+1}, a) − α_s log π(a|s_{t+1})]
         # (γ = 1 within a task), the critic loss on it, and the actor loss Σ_a π(a|s_t)[α_s log π(a|s_t) − min_k Q^k(s_t, a)]
