@@ -57,7 +57,8 @@ def pair_values(view: ObsView, theta: Sequence[float], grid_size: int) -> th.Ten
 
 class SelectValues(NamedTuple):
     """The select stage's pair costs with each entity's learned future value: the pointer decodes (and is trained) on
-    c_ij + v_ij (``TAMPolicy(select_values=...)``), the costs that :class:`EntityValueDecoder` solves on with σ = 0.
+    c_ij + v_ij (``TAMPolicy(select_values=...)``, implementation detail 28), the costs that :class:`EntityValueDecoder`
+    solves on with σ = 0.
 
     :param theta: (θ_free, θ_τ, θ_e), e.g. the recommended decoder's (``settings.RECOMMENDED_DECODERS``)
     :param grid_size: the grid's side, where tasks arrive at uniform cells
