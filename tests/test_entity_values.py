@@ -182,6 +182,32 @@ def test_select_values_put_the_values_in_the_pointers_costs(tmp_path):
             TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs={"select_values": bad})
 
 
+def test_select_values_surcharge_is_exact_tops_costs(tmp_path):
+    """``select_values={"surcharge": σ}`` puts ``exact_top``'s uniform surcharge in the pointer's costs, (1 + σ)·c_ij (MT's
+    recommended decoder), alone or with θ on top, as ``entity_value`` with the same σ and θ; a saved model keeps it."""
+    from sb3_taskalloc.two_stage_sac.decoding import ExactTopDecoder
+    from sb3_taskalloc.two_stage_sac.entity_values import SelectValues
+
+    env = gym.make("TaskAlloc/MT-v0")
+    model = TwoStageSAC("TAMPolicy", env, seed=0, policy_kwargs={"hidden_dim": 16, "select_values": {"surcharge": 0.64}})
+    obs, _ = env.reset(seed=1)
+    view = _view(model, obs)
+    costed = model.policy.select_view(view)
+    th.testing.assert_close(costed.pair_cost, ExactTopDecoder(top=10, surcharge=0.64).costed(view).pair_cost)
+    assert bool((costed.pair_cost[view.valid] > view.pair_cost[view.valid]).all())
+    both = SelectValues.of({"theta": (0.1, 0.2, 0.3), "surcharge": 0.5})
+    assert both is not None and SelectValues.of(both.config) == both
+    rbf = gym.make("TaskAlloc/RBF-v0")
+    rbf_view = _view(TwoStageSAC("TAMPolicy", rbf, seed=0, policy_kwargs={"hidden_dim": 16}), rbf.reset(seed=2)[0])
+    expected = EntityValueDecoder(theta=(0.1, 0.2, 0.3), surcharge=0.5).costed(rbf_view).pair_cost
+    th.testing.assert_close(both.costed(rbf_view).pair_cost, expected)
+    model.save(tmp_path / "surcharged.zip")
+    assert TwoStageSAC.load(tmp_path / "surcharged.zip").policy.select_values == SelectValues(surcharge=0.64)
+    for bad in ({"surcharge": -0.1}, {"surcharge": float("nan")}, {"grid_size": 7}, {"surcharge": True}):
+        with pytest.raises(ValueError, match="select_values"):
+            TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs={"select_values": bad})
+
+
 def test_select_values_reach_training_and_dagger(monkeypatch):
     """Values that price every pair out (θ_free = 10⁶) keep no team at decision time, label nothing in DAgger and
     reach the select stage's SAC losses, which train on the pointer's own costs."""

@@ -56,40 +56,53 @@ def pair_values(view: ObsView, theta: Sequence[float], grid_size: int) -> th.Ten
 
 
 class SelectValues(NamedTuple):
-    """The select stage's pair costs with each entity's learned future value: the pointer decodes (and is trained) on
-    c_ij + v_ij (``TAMPolicy(select_values=...)``, implementation detail 28), the costs that :class:`EntityValueDecoder`
-    solves on with σ = 0.
+    """The select stage's pair costs with what committing each entity gives up: the pointer decodes (and is trained) on
+    c_ij (1 + σ) + v_ij (``TAMPolicy(select_values=...)``, implementation detail 28), the costs that the recommended
+    decoder solves on: :class:`EntityValueDecoder`'s learned values v_ij with θ (RBF), or ``exact_top``'s uniform
+    surcharge σ (MT).
 
-    :param theta: (θ_free, θ_τ, θ_e), e.g. the recommended decoder's (``settings.RECOMMENDED_DECODERS``)
-    :param grid_size: the grid's side, where tasks arrive at uniform cells
+    :param theta: (θ_free, θ_τ, θ_e), e.g. the recommended decoder's (``settings.RECOMMENDED_DECODERS``); None: no v_ij
+    :param grid_size: the grid's side, where tasks arrive at uniform cells (read with ``theta`` only)
+    :param surcharge: σ ≥ 0, a uniform surcharge on every pair's cost
     """
 
-    theta: tuple[float, float, float]
+    theta: tuple[float, float, float] | None = None
     grid_size: int = 7
+    surcharge: float = 0.0
 
     @classmethod
     def of(cls, config: dict[str, Any] | None) -> SelectValues | None:
         """The values of a policy's ``select_values`` keyword (None: none), with a clear error for a bad one."""
         if config is None:
             return None
-        if not isinstance(config, dict) or not {"theta"} <= set(config) <= {"theta", "grid_size"}:
-            raise ValueError(f"select_values must be None or a dict of 'theta' and 'grid_size', got {config!r}")
-        theta = config["theta"]
-        numbers = isinstance(theta, list | tuple) and all(isinstance(x, int | float) and np.isfinite(x) for x in theta)
-        if not numbers or len(theta) != 3:
-            raise ValueError(f"select_values['theta'] must be three finite numbers (θ_free, θ_τ, θ_e), got {theta!r}")
+        keys = {"theta", "grid_size", "surcharge"}
+        if not isinstance(config, dict) or not set(config) <= keys or not {"theta", "surcharge"} & set(config):
+            raise ValueError(
+                f"select_values must be None or a dict of 'theta' (with 'grid_size') and/or 'surcharge', got {config!r}"
+            )
+        theta = config.get("theta")
+        if theta is not None:
+            numbers = isinstance(theta, list | tuple) and all(isinstance(x, int | float) and np.isfinite(x) for x in theta)
+            if not numbers or len(theta) != 3:
+                raise ValueError(f"select_values['theta'] must be three finite numbers (θ_free, θ_τ, θ_e), got {theta!r}")
+            theta = (float(theta[0]), float(theta[1]), float(theta[2]))
         grid_size = config.get("grid_size", 7)
         check_counts({"select_values['grid_size']": grid_size})
-        return cls((float(theta[0]), float(theta[1]), float(theta[2])), grid_size)
+        surcharge = config.get("surcharge", 0.0)
+        check_finite({"select_values['surcharge']": surcharge}, minimum=0.0, inclusive=True)
+        return cls(theta, grid_size, float(surcharge))
 
     @property
     def config(self) -> dict[str, Any]:
         """The ``select_values`` keyword that rebuilds these values (what a saved model stores)."""
-        return {"theta": list(self.theta), "grid_size": self.grid_size}
+        config: dict[str, Any] = {} if self.theta is None else {"theta": list(self.theta), "grid_size": self.grid_size}
+        return {**config, "surcharge": self.surcharge} if self.surcharge or self.theta is None else config
 
     def costed(self, view: ObsView) -> ObsView:
-        """``view`` with each pair's cost raised by what its entity gives up (:func:`pair_values`)."""
-        return view._replace(pair_cost=view.pair_cost + pair_values(view, self.theta, self.grid_size))
+        """``view`` with each pair's cost raised by the surcharge and by what its entity gives up (:func:`pair_values`),
+        in the order of :meth:`EntityValueDecoder.costed`, so that both read the same numbers."""
+        cost = view.pair_cost + self.surcharge * view.pair_cost
+        return view._replace(pair_cost=cost if self.theta is None else cost + pair_values(view, self.theta, self.grid_size))
 
 
 @register_decoder

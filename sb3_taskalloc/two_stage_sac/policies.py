@@ -106,9 +106,10 @@ class TAMPolicy(BasePolicy):
     :param n_critics: number of critics (clipped double-Q)
     :param heuristic_init: start the pre-assign actor and the pointer at cost-greedy rules (:data:`HEURISTIC_INIT`,
         implementation detail 10); ``False``: PyTorch's default initialisation (the paper)
-    :param select_values: each entity's learned future value in the pointer's pair costs, ``{"theta": (θ_free, θ_τ,
-        θ_e), "grid_size": 7}`` (:class:`~.entity_values.SelectValues`; grid envs with Manhattan travel, RBF's zoo
-        config): the select stage decodes, trains and is distilled on c_ij + v_ij; None: on the observation's costs
+    :param select_values: what committing an entity gives up, in the pointer's pair costs: each entity's learned
+        future value ``{"theta": (θ_free, θ_τ, θ_e), "grid_size": 7}`` (grid envs with Manhattan travel) and/or a
+        uniform ``{"surcharge": σ}`` (:class:`~.entity_values.SelectValues`): the select stage decodes, trains and is
+        distilled on c_ij (1 + σ) + v_ij; None: on the observation's costs
     :param rule_weights: with ``heuristic_init``, the pre-assign rule's weights on the fixed pair features by name
         (:data:`~sb3_taskalloc.common.torch_layers.PAIR_FEATURE_NAMES`) over ``{"pair_cost": -3.0}``, e.g.
         ``{"margin": 3.0}`` (MT's zoo config); ignored by policies without the pre-assign pair read-out
