@@ -55,6 +55,15 @@ def pair_values(view: ObsView, theta: Sequence[float], grid_size: int) -> th.Ten
     return values.to(view.pair_cost.dtype)
 
 
+def checked_theta(theta: Any, name: str) -> tuple[float, float, float]:
+    """``theta`` as three floats (θ_free, θ_τ, θ_e), or a ValueError naming ``name`` if it is not three finite numbers."""
+    real = int | float | np.integer | np.floating
+    numbers = isinstance(theta, Sequence | np.ndarray) and all(isinstance(x, real) and np.isfinite(x) for x in theta)
+    if not numbers or len(theta) != 3:
+        raise ValueError(f"{name} must be three finite numbers (θ_free, θ_τ, θ_e), got {theta!r}")
+    return (float(theta[0]), float(theta[1]), float(theta[2]))
+
+
 class SelectValues(NamedTuple):
     """The select stage's pair costs with what committing each entity gives up: the pointer decodes (and is trained) on
     c_ij (1 + σ) + v_ij (``TAMPolicy(select_values=...)``, implementation detail 28), the costs that the recommended
@@ -81,11 +90,7 @@ class SelectValues(NamedTuple):
                 f"select_values must be None or a dict of 'theta' (with 'grid_size') and/or 'surcharge', got {config!r}"
             )
         theta = config.get("theta")
-        if theta is not None:
-            numbers = isinstance(theta, list | tuple) and all(isinstance(x, int | float) and np.isfinite(x) for x in theta)
-            if not numbers or len(theta) != 3:
-                raise ValueError(f"select_values['theta'] must be three finite numbers (θ_free, θ_τ, θ_e), got {theta!r}")
-            theta = (float(theta[0]), float(theta[1]), float(theta[2]))
+        theta = None if theta is None else checked_theta(theta, "select_values['theta']")
         grid_size = config.get("grid_size", 7)
         check_counts({"select_values['grid_size']": grid_size})
         surcharge = config.get("surcharge", 0.0)
@@ -123,10 +128,8 @@ class EntityValueDecoder(ExactTopDecoder):
         self, top: int = 2, theta: Sequence[float] = (0.0, 0.0, 0.0), grid_size: int = 7, surcharge: float = 0.0, seed: int = 0
     ) -> None:
         super().__init__(top=top, surcharge=surcharge, seed=seed)
-        if len(theta) != 3 or not all(np.isfinite(theta)):
-            raise ValueError(f"theta must be three finite numbers (theta_free, theta_tau, theta_e), got {theta!r}")
         check_counts({"grid_size": grid_size})
-        self.theta, self.grid_size = tuple(float(x) for x in theta), grid_size
+        self.theta, self.grid_size = checked_theta(theta, "theta"), grid_size
 
     @property
     def config(self) -> dict[str, Any]:
