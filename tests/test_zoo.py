@@ -117,3 +117,18 @@ def test_rbf_block_prices_the_pointer_with_the_recommended_values():
     assert tuple(config["TaskAlloc/RBF-v0"]["policy_kwargs"]["select_values"]["theta"]) == tuple(decoder["theta"])
     for shifted in ("TaskAlloc/RBF-EntityShift-v0", "TaskAlloc/RBF-TaskShift-v0"):
         assert "select_values" not in config[shifted]["policy_kwargs"]
+
+
+def test_mt_block_prices_the_pointer_with_the_recommended_surcharge():
+    """MT's pointer decodes on the recommended decoder's costs, (1 + σ)·c_ij with its σ; the shifted MT envs, where no
+    σ was measured, keep the observation's costs and the block's other policy keywords."""
+    from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
+
+    config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
+    name, decoder = RECOMMENDED_DECODERS["TaskAlloc/MT-v0"]
+    assert name == "exact_top"
+    block = config["TaskAlloc/MT-v0"]["policy_kwargs"]
+    assert block["select_values"] == {"surcharge": decoder["surcharge"]}
+    for shifted in ("TaskAlloc/MT-EntityShift-v0", "TaskAlloc/MT-TaskShift-v0"):
+        kwargs = config[shifted]["policy_kwargs"]
+        assert "select_values" not in kwargs and kwargs == {k: v for k, v in block.items() if k != "select_values"}
