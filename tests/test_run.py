@@ -18,6 +18,7 @@ import envs
 from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
 from sb3_taskalloc.two_stage_sac.callbacks import dagger_seed
 from sb3_taskalloc.two_stage_sac.two_stage_sac import DEFAULT_TOTAL_TIMESTEPS
+from sb3_taskalloc.zoo_config import zoo_hyperparameters
 
 ABLATIONS = {
     "full": {},
@@ -235,7 +236,9 @@ def test_demo_writes_its_outputs(tmp_path, capsys):
         assert (tmp_path / name).stat().st_size > 0, name
     loaded = TwoStageSAC.load(tmp_path / "two_stage_sac.zip", device="cpu")
     assert loaded.num_timesteps == 40
-    assert loaded.policy.rounds == 2 and loaded.policy.rule_weights == {"margin": 3.0}
+    block = zoo_hyperparameters("TaskAlloc/MT-v0")["policy_kwargs"]  # the demo trains the zoo block's policy
+    assert loaded.policy.rounds == block["rounds"] and loaded.policy.rule_weights == block["rule_weights"]
+    assert loaded.policy.select_values is not None and loaded.policy.select_values.config == block["select_values"]
     assert "TwoStageSAC" in capsys.readouterr().out
 
 

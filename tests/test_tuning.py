@@ -20,6 +20,7 @@ import yaml
 from optuna.trial import TrialState
 
 from sb3_taskalloc import TwoStageSAC
+from sb3_taskalloc.zoo_config import zoo_hyperparameters
 from tuning import study as runner
 from tuning.samplers import convert_two_stage_sac_params, sample_two_stage_sac_params
 
@@ -133,8 +134,9 @@ def test_a_trial_trains_the_env_zoo_block_under_its_sampled_settings(monkeypatch
         runner.objective(optuna.trial.FixedTrial({**FIXED, "learning_starts": 1000}), args)
     assert isinstance(seen["env"], VecEnv) and seen["env"].num_envs == 8
     assert seen["train_preassign_actor"] is False and seen["tau"] == 0.01  # the block's, and the sampled over it
-    assert seen["policy_kwargs"] == {"rule_weights": {"margin": 3.0}, "rounds": 2, "hidden_dim": 32, "n_attention_layers": 1,
-                                     "logit_scale": 100.0, "select_logit_scale": 10.0}  # fmt: skip
+    block = zoo_hyperparameters("TaskAlloc/MT-v0")["policy_kwargs"]  # the block's keywords, the sampled ones over them
+    assert seen["policy_kwargs"] == {**block, "hidden_dim": 32, "n_attention_layers": 1, "logit_scale": 100.0,
+                                     "select_logit_scale": 10.0, "rounds": 2}  # fmt: skip
     assert seen["select_kwargs"] == {"prior_coef": 3.0, "search_coef": 10.0, "search_samples": 32, "batch_size": 8}
     assert seen["learning_starts"] == 400  # at most half the trial's budget
 
