@@ -104,8 +104,8 @@ class SelectValues(NamedTuple):
         return {**config, "surcharge": self.surcharge} if self.surcharge or self.theta is None else config
 
     def costed(self, view: ObsView) -> ObsView:
-        """``view`` with each pair's cost raised by the surcharge and by what its entity gives up (:func:`pair_values`),
-        in the order of :meth:`EntityValueDecoder.costed`, so that both read the same numbers."""
+        """``view`` with each pair's cost raised by the surcharge and by what its entity gives up (:func:`pair_values`);
+        :meth:`EntityValueDecoder.costed` reads the same."""
         cost = view.pair_cost + self.surcharge * view.pair_cost
         return view._replace(pair_cost=cost if self.theta is None else cost + pair_values(view, self.theta, self.grid_size))
 
@@ -140,8 +140,8 @@ class EntityValueDecoder(ExactTopDecoder):
         return super().plain and not any(self.theta)
 
     def costed(self, view: ObsView) -> ObsView:
-        cost = view.pair_cost + self.surcharge * view.pair_cost + pair_values(view, self.theta, self.grid_size)
-        return view._replace(pair_cost=cost)
+        # The pointer's SelectValues compute these costs; built per call, as the fit's exploration sets the surcharge.
+        return SelectValues(self.theta, self.grid_size, self.surcharge).costed(view)
 
 
 class EntityValueFit(NamedTuple):
