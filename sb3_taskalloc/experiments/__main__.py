@@ -80,7 +80,9 @@ def _add_learn(sub: Any) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         help="trained vs untrained, Greedy, per-step MILP and planners, per seed (resumes)",
     )
-    learn.add_argument("--env", required=True, type=env_name, choices=ENVS)
+    learn.add_argument(  # every registered env: the shifted ones' own zoo blocks are measured on them too
+        "--env", required=True, type=env_name, choices=sorted(env_name(env_id) for env_id in envs.ENV_SPECS)
+    )
     learn.add_argument("--seeds", type=int, default=5, help="training seeds")
     learn.add_argument(
         "--first-seed", type=int, default=0, metavar="S",

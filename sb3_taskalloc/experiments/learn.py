@@ -49,7 +49,8 @@ from sb3_taskalloc.zoo_config import over_zoo, training_env, zoo_dagger
 class LearnRun:
     """One env's learning experiment.
 
-    :param env: ``"RBF"``, ``"MT"``, ``"EPT"`` or ``"Almighty"``
+    :param env: a registered env without ``TaskAlloc/`` and ``-v0``: ``"RBF"``, ``"MT"``, ``"EPT"``, ``"Almighty"`` or a
+        shifted one (``"MT-EntityShift"``)
     :param seeds: number of training seeds, ``first_seed`` .. ``first_seed + seeds − 1``
     :param steps: training env steps per seed
     :param eval_episodes: held-out evaluation episodes per seed
