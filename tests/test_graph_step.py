@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import warnings
 from collections import defaultdict
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -19,11 +20,13 @@ from sb3_taskalloc.two_stage_sac import graph_step
 needs_cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
 
 
-def filled(device: str = "cpu", search: bool = True) -> TwoStageSAC:
+def filled(device: str = "cpu", search: bool = True, **policy_kwargs: Any) -> TwoStageSAC:
     """RBF with its first 12 robots, both stages trained, the team search on (or off); 48 warm-up steps stored."""
     env = gym.make("TaskAlloc/RBF-v0", entity_rows=tuple(range(12)))
     select = {"search_coef": 30.0 if search else 0.0, "search_samples": 8}
-    model = TwoStageSAC("TAMPolicy", env, learning_starts=48, seed=0, device=device, select_kwargs=select)
+    model = TwoStageSAC(
+        "TAMPolicy", env, learning_starts=48, seed=0, device=device, select_kwargs=select, policy_kwargs=policy_kwargs
+    )
     with warnings.catch_warnings():  # the warm-up alone: decisions stored, nothing trained
         warnings.simplefilter("ignore", UserWarning)
         model.learn(48)
@@ -62,6 +65,18 @@ def test_padded_gradient_step_is_the_eager_one():
     assert [type(u).__name__ for u in eager.updates] == ["PreAssignUpdate", "SelectUpdate"]
     logs = run_steps(eager, graph_step.GradientStep(eager, eager.updates), 3)
     assert logs["select_search_loss"][0] != 0  # the search found better teams: its term is in the step
+    assert_same_logs(logs, run_steps(pad, padded(pad), 3), 1e-5, 1e-6)
+    assert_same_models(eager, pad, 1e-6)
+
+
+def test_padded_gradient_step_is_the_eager_one_on_the_pointers_own_costs():
+    """The zoo blocks' pointer decodes and trains on costed pairs (``select_values``, RBF's θ and MT's σ at once): the
+    padded step reads the same costs as the eager one, so the graph records what the eager step trains."""
+    values = {"theta": [-0.114, -0.041, 0.010], "surcharge": 0.64}
+    eager, pad = filled(select_values=values), filled(select_values=values)
+    logs = run_steps(eager, graph_step.GradientStep(eager, eager.updates), 3)
+    plain = filled()
+    assert logs["select_actor_loss"] != run_steps(plain, graph_step.GradientStep(plain, plain.updates), 3)["select_actor_loss"]
     assert_same_logs(logs, run_steps(pad, padded(pad), 3), 1e-5, 1e-6)
     assert_same_models(eager, pad, 1e-6)
 
