@@ -120,8 +120,8 @@ def test_rbf_block_prices_the_pointer_with_the_recommended_values():
 
 
 def test_mt_block_prices_the_pointer_with_the_recommended_surcharge():
-    """MT's pointer decodes on the recommended decoder's costs, (1 + σ)·c_ij with its σ; the shifted MT envs, where no
-    σ was measured, keep the observation's costs and the block's rule."""
+    """MT's pointer decodes on the recommended decoder's costs, (1 + σ)·c_ij with its σ, and the shifted MT envs train
+    with MT's whole policy block (measured on them: results/learn_mt_shift_seeds20)."""
     from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
     config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
@@ -130,5 +130,4 @@ def test_mt_block_prices_the_pointer_with_the_recommended_surcharge():
     block = config["TaskAlloc/MT-v0"]["policy_kwargs"]
     assert block["select_values"] == {"surcharge": decoder["surcharge"]}
     for shifted in ("TaskAlloc/MT-EntityShift-v0", "TaskAlloc/MT-TaskShift-v0"):
-        kwargs = config[shifted]["policy_kwargs"]
-        assert "select_values" not in kwargs and kwargs["rule_weights"] == block["rule_weights"]
+        assert config[shifted]["policy_kwargs"] == block
