@@ -108,7 +108,7 @@ def test_zoo_usage_error():
 
 def test_rbf_block_prices_the_pointer_with_the_recommended_values():
     """RBF's pointer decodes on the recommended decoder's costs: the block's θ is ``entity_value``'s, and the shifted
-    RBF envs, where no value was fitted, keep the observation's costs."""
+    RBF envs keep the observation's costs (RBF's θ measured no better on RBF-EntityShift)."""
     from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
     config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
