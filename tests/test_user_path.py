@@ -207,8 +207,8 @@ def test_commands_take_env_names_in_both_forms_and_show_defaults(capsys):
 
     args = experiments.build_parser().parse_args(["learn", "--env", "TaskAlloc/MT-v0", "--zero-shot", "MT-EntityShift"])
     assert (args.env, args.zero_shot) == ("MT", "MT-EntityShift")
-    shifted = experiments.build_parser().parse_args(["learn", "--env", "TaskAlloc/MT-TaskShift-v0"])
-    assert shifted.env == "MT-TaskShift"  # a shifted env's own block is measured on it
+    for command in ("learn", "diagnose"):  # a shifted env's own block is measured on it
+        assert experiments.build_parser().parse_args([command, "--env", "TaskAlloc/MT-TaskShift-v0"]).env == "MT-TaskShift"
     with pytest.raises(SystemExit):
         experiments.build_parser().parse_args(["learn", "--env", "MT-Nope"])
     assert demo.parse_args(["--env", "RBF"]).env == "TaskAlloc/RBF-v0"
