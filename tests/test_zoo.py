@@ -121,7 +121,7 @@ def test_rbf_block_prices_the_pointer_with_the_recommended_values():
 
 def test_mt_block_prices_the_pointer_with_the_recommended_surcharge():
     """MT's pointer decodes on the recommended decoder's costs, (1 + σ)·c_ij with its σ, and the shifted MT envs train
-    with MT's whole policy block (measured on them: results/learn_mt_shift_seeds20)."""
+    with MT's whole policy block (measured on them: results/learn_shifted_seeds20)."""
     from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
     config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
