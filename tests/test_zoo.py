@@ -14,7 +14,8 @@ import yaml
 import envs
 from sb3_taskalloc import SelectDAggerCallback, TAMPolicy, TwoStageSAC
 from sb3_taskalloc.two_stage_sac.dagger import teacher_costs
-from sb3_taskalloc.zoo_config import zoo_dagger
+from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
+from sb3_taskalloc.zoo_config import zoo_dagger, zoo_hyperparameters
 
 pytest.importorskip("rl_zoo3", reason='rl-zoo3 is the optional "zoo" extra')
 
@@ -106,28 +107,27 @@ def test_zoo_usage_error():
     assert proc.returncode != 0 and "usage" in proc.stderr
 
 
+def block_policy_kwargs(env_id: str) -> dict:
+    """The ``policy_kwargs`` of ``env_id``'s block in the shipped config, read as every experiment reads it."""
+    return zoo_hyperparameters(env_id, CONFIGS / "two_stage_sac.yml")["policy_kwargs"]
+
+
 def test_rbf_block_prices_the_pointer_with_the_recommended_values():
     """RBF's pointer decodes on the recommended decoder's costs: the block's θ is ``entity_value``'s, and the shifted
     RBF envs keep the observation's costs (RBF's θ measured no better on RBF-EntityShift)."""
-    from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
-
-    config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
     name, decoder = RECOMMENDED_DECODERS["TaskAlloc/RBF-v0"]
     assert name == "entity_value"
-    assert tuple(config["TaskAlloc/RBF-v0"]["policy_kwargs"]["select_values"]["theta"]) == tuple(decoder["theta"])
+    assert tuple(block_policy_kwargs("TaskAlloc/RBF-v0")["select_values"]["theta"]) == tuple(decoder["theta"])
     for shifted in ("TaskAlloc/RBF-EntityShift-v0", "TaskAlloc/RBF-TaskShift-v0"):
-        assert "select_values" not in config[shifted]["policy_kwargs"]
+        assert "select_values" not in block_policy_kwargs(shifted)
 
 
 def test_mt_block_prices_the_pointer_with_the_recommended_surcharge():
     """MT's pointer decodes on the recommended decoder's costs, (1 + σ)·c_ij with its σ, and the shifted MT envs train
     with MT's whole policy block (measured on them: results/learn_shifted_seeds20)."""
-    from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
-
-    config = yaml.safe_load((CONFIGS / "two_stage_sac.yml").read_text())
     name, decoder = RECOMMENDED_DECODERS["TaskAlloc/MT-v0"]
     assert name == "exact_top"
-    block = config["TaskAlloc/MT-v0"]["policy_kwargs"]
+    block = block_policy_kwargs("TaskAlloc/MT-v0")
     assert block["select_values"] == {"surcharge": decoder["surcharge"]}
     for shifted in ("TaskAlloc/MT-EntityShift-v0", "TaskAlloc/MT-TaskShift-v0"):
-        assert config[shifted]["policy_kwargs"] == block
+        assert block_policy_kwargs(shifted) == block
