@@ -31,6 +31,7 @@ from sb3_taskalloc.two_stage_sac.select_stage import Decision, env_action_of
 from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
 if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.graph_decide import FixedSteps
     from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
 
 DecoderT = TypeVar("DecoderT", bound=type["Decoder"])
@@ -322,13 +323,19 @@ SAMPLED, UNIFORM = get_decoding_strategy("sampled"), get_decoding_strategy("unif
 
 
 def decide_preassigned(
-    policy: TAMPolicy, view: ObsView, decoder: Decoder, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None
+    policy: TAMPolicy,
+    view: ObsView,
+    decoder: Decoder,
+    rounds_out: list[tuple[ObsView, th.Tensor]] | None = None,
+    fixed: FixedSteps | None = None,
 ) -> Decision:
     """Stage 1 (Algorithm 2): every free entity takes one open task (candidate sets C_j); stage 2 (Algorithm 3):
     every task decodes its team from its own candidates, all in one round, both as ``decoder`` decides. With
     ``rounds`` > 1 the entities left over pre-assign again among the tasks not tried yet (see ``rounds``); the
-    decision records the first round."""
+    decision records the first round. With ``fixed`` (a decision recorded as a CUDA graph, :mod:`.graph_decide`)
+    every round runs, with no host check whether an entity is left, and ``fixed`` decodes the teams."""
     assert policy.actor is not None
+    teams = decoder.teams if fixed is None else fixed.teams
     B, N, M = view.pair_cost.shape
     tasks = th.arange(M, device=view.pair_cost.device).view(1, M, 1)
     first: Decision | None = None
@@ -338,7 +345,7 @@ def decide_preassigned(
         c, also_tried = decoder.preassign(policy, view, dist, first_round=r == 0)  # type: ignore[arg-type]
         if rounds_out is not None:
             rounds_out.append((view, c))
-        rank, kept = decoder.teams(policy, view, c)
+        rank, kept = teams(policy, view, c)
         candidates = c.unsqueeze(1) == tasks
         action = env_action_of(rank, kept)
         if first is None:
@@ -348,7 +355,7 @@ def decide_preassigned(
             break
         tried = candidates.any(-1) if also_tried is None else candidates.any(-1) | also_tried
         view = view._replace(entity_mask=view.entity_mask & (env_action == M), task_mask=view.task_mask & ~tried)
-        if not bool(view.assignable.any()):
+        if fixed is None and not bool(view.assignable.any()):
             break
     assert first is not None
     return first._replace(env_action=env_action)

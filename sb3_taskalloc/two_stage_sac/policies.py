@@ -35,6 +35,7 @@ from sb3_taskalloc.two_stage_sac.decoding import (
     get_decoding_strategy,
 )
 from sb3_taskalloc.two_stage_sac.entity_values import SelectValues
+from sb3_taskalloc.two_stage_sac.graph_decide import DecisionGraph
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, SelectState, decode_round
 
 #: Initial weights of ``TAMPolicy(heuristic_init=True)`` (implementation detail 10 of :mod:`sb3_taskalloc.two_stage_sac`):
@@ -196,6 +197,8 @@ class TAMPolicy(BasePolicy):
         self.rounds = rounds
         #: How deterministic decisions are decoded (:mod:`.decoding`); not saved among the constructor parameters.
         self.decoder: Decoder = get_decoding_strategy("argmax")
+        #: Its own decisions recorded as CUDA graphs (:mod:`.graph_decide`), which ``TwoStageSAC(cuda_graph=True)`` sets.
+        self.decision_graph: DecisionGraph | None = None
         self.heuristic_init = heuristic_init
         self.rule_weights = check_rule_weights(rule_weights, heuristic_init)
         self.select_values = SelectValues.of(select_values)
@@ -259,15 +262,7 @@ class TAMPolicy(BasePolicy):
             self.critic_target = self._make_critic()
             self.critic_target.load_state_dict(self.critic.state_dict())
             self.critic_target.train(False)
-        self.selector = Selector(
-            PointerHead(
-                Fe,
-                K,
-                self.hidden_dim,
-                self.activation_fn,
-                logit_scale=self.select_logit_scale,
-            )
-        )
+        self.selector = Selector(PointerHead(Fe, K, self.hidden_dim, self.activation_fn, logit_scale=self.select_logit_scale))
         self.selector.optimizer = self._make_optimizer(self.selector, lr)
 
         def make_heads() -> list[PointerHead]:
@@ -409,6 +404,10 @@ class TAMPolicy(BasePolicy):
             to it: the states the select stage decoded, which the first-round decision alone does not record
         """
         if self.preassign:
+            graph = self.decision_graph if rounds_out is None else None
+            recorded = None if graph is None else graph.decide(self, view, deterministic, uniform)
+            if recorded is not None:
+                return recorded
             decoder = UNIFORM if uniform else self.decoder if deterministic else SAMPLED
             return decide_preassigned(self, view, decoder, rounds_out)
         if rounds_out is not None:

@@ -266,6 +266,7 @@ def decode_round(
     generator: th.Generator | None = None,
     fixed_picks: bool = False,
     embedded: th.Tensor | None = None,
+    steps: int | None = None,
 ) -> SelectState:
     """Decode the teams of every task of one round in parallel (one pick per task per step).
 
@@ -281,13 +282,17 @@ def decode_round(
     :param embedded: the pointer's entity embeddings of ``view`` (``head.embed_entities(view)``) where the caller has
         them already: (B, N, H), or (B / S, N, H) when the rows are S consecutive copies of each row of a round (a
         search's copies), which the pointer then scores in wider products
+    :param steps: with ``fixed_picks``, the pick steps run (default N): fewer leave a team that needs more unfinished,
+        its task still ``active`` (a recorded decision's budget, :mod:`.graph_decide`)
     """
     full = st = SelectState(view, task_of)
     B, M, N = st.seg.shape
     rows = th.arange(B, device=task_of.device)  # the rows of `full` that `st` decodes
     d = None if head is None or uniform else embedded if embedded is not None else head.embed_entities(view)
     embeddings, copies = d, 1 if d is None else B // d.shape[0]
-    for t in range(N):
+    if steps is not None and not fixed_picks:
+        raise ValueError(f"steps={steps} bounds the fixed loop only: pass fixed_picks=True with it")
+    for t in range(N if steps is None else steps):
         if not fixed_picks:
             live = st.active.any(1)
             n_live = int(live.sum())

@@ -24,6 +24,7 @@ from sb3_taskalloc.common.save_util import AtomicSaveMixin, check_saved_model, s
 from sb3_taskalloc.two_stage_sac import dagger, graph_step, legacy
 from sb3_taskalloc.two_stage_sac import updates as stage
 from sb3_taskalloc.two_stage_sac.decoding import DecodingMixin
+from sb3_taskalloc.two_stage_sac.graph_decide import DecisionGraph
 from sb3_taskalloc.two_stage_sac.policies import TAMPolicy, check_spaces
 from sb3_taskalloc.two_stage_sac.settings import check_select_kwargs, check_settings
 from sb3_taskalloc.zoo_config import from_zoo
@@ -71,7 +72,8 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
     :param select_kwargs: the select stage's settings over :data:`~sb3_taskalloc.two_stage_sac.updates.SELECT_DEFAULTS`
     :param target_update_interval: target network update interval (gradient steps)
     :param cuda_graph: on CUDA, record the gradient step as a CUDA graph once and replay it (implementation detail 26,
-        :mod:`.graph_step`); the eager step elsewhere. Needs a constant learning rate
+        :mod:`.graph_step`), and the policy's own decisions per observation shape (detail 29, :mod:`.graph_decide`);
+        eager elsewhere. Needs a constant learning rate
     :param stats_window_size: episodes in the rollout logging window
     :param tensorboard_log: tensorboard log folder
     :param policy_kwargs: :class:`TAMPolicy` keyword arguments (ablations included)
@@ -212,6 +214,7 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
             self.updates.insert(0, preassign)
         graph_step.check_cuda_graph(self)
         self.gradient_step = graph_step.gradient_step(self)
+        self.policy.decision_graph = DecisionGraph() if self.cuda_graph else None
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor

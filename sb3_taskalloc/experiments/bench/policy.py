@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -68,6 +70,19 @@ def decoder_words(decoder: str, config: dict[str, Any], n_tasks: int) -> str:
 def latency_fields(ms: np.ndarray) -> dict[str, Any]:
     """A latency row's figures: how many states were timed, and the median and p90 of their ms per decision."""
     return {"states": len(ms), "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90))}
+
+
+def recorded_fields(policy: Any, timed: Callable[[], np.ndarray]) -> dict[str, Any]:
+    """``timed()``'s figures with ``policy``'s own decisions recorded as CUDA graphs (:class:`.DecisionGraph`, as
+    ``cuda_graph=True`` sets it), and how many decisions replayed and fell back to the eager path."""
+    from sb3_taskalloc.two_stage_sac.graph_decide import DecisionGraph
+
+    graph = policy.decision_graph = DecisionGraph()
+    try:
+        ms = timed()
+    finally:
+        policy.decision_graph = None
+    return {**latency_fields(ms), "replays": graph.replays, "fallbacks": graph.fallbacks}
 
 
 def smoke_states(states: list[Any]) -> list[Any]:
@@ -136,6 +151,10 @@ def bench_policy_episodes(args: argparse.Namespace, devices: list[str]) -> list[
                  **latency_fields(ms), "model": source if name == "trained" else None,
                  "target": "median <= 5 ms, p90 <= 10 ms (CPU)" if decoder == "argmax" else None}
             )  # fmt: skip
+            if device == "cuda" and decoder == "argmax":
+                fields = recorded_fields(agent.policy, partial(state_latencies_ms, agent, states, "cuda"))
+                rows.append({**rows[-1], "policy": f"TAMPolicy {name}, recorded (cuda_graph=True)", **fields,
+                             "target": "median <= the CPU's argmax"})  # fmt: skip
     ms = state_latencies_ms(GreedyAllocator(), states)
     rows.append({"device": "cpu", "env": env_id, "policy": "Greedy", **latency_fields(ms)})
     return rows
@@ -204,6 +223,13 @@ def bench_policy(args: argparse.Namespace) -> list[dict[str, Any]]:
             reps = 5 if (args.quick or n * m >= 50_000) else 30
             row: dict[str, Any] = {"device": device, "entities": n, "tasks": m}
             row["predict_ms"] = median_ms(lambda: policy.predict(obs, deterministic=True), reps)  # noqa: B023
+            if device == "cuda":  # the same decision recorded as a CUDA graph, its median over ``reps`` replays
+
+                def replayed(policy: TAMPolicy = policy, obs: Any = obs, reps: int = reps) -> np.ndarray:
+                    return np.array([median_ms(lambda: policy.predict(obs, deterministic=True), reps)])
+
+                fields = recorded_fields(policy, replayed)
+                row.update(recorded_predict_ms=fields["median_ms"], recorded_fallbacks=fields["fallbacks"])
             if i == 0:
                 batch = obs_as_tensor({k: np.repeat(v[None], 256, 0) for k, v in obs.items()}, th.device(device))
 
