@@ -1,6 +1,7 @@
 """Decisions recorded as CUDA graphs (``cuda_graph=True``, :mod:`sb3_taskalloc.two_stage_sac.graph_decide`): the
 fixed-step decision they record is the eager one wherever its flag is clear and traces whole (on the CPU); on CUDA the
-replayed decision is the eager one, a team longer than the steps falls back to it, and training collects with it."""
+replayed argmax is the eager one, a team longer than the steps falls back to it, ``cuda_graph=True`` records samples
+only, and training collects with them."""
 
 from __future__ import annotations
 
@@ -75,6 +76,12 @@ def test_steps_bound_the_fixed_loop_only():
         decode_round(model.policy.selector.head, view, task_of, True, steps=4)
 
 
+def test_a_decision_graph_needs_steps():
+    """A budget of no pick steps is refused with a clear error."""
+    with pytest.raises(ValueError, match="steps"):
+        DecisionGraph(0)
+
+
 def test_cuda_graph_decides_eagerly_off_cuda():
     """``cuda_graph=True`` gives the policy a :class:`DecisionGraph`, which declines on the CPU: the same decisions as a
     model without it, none recorded."""
@@ -95,7 +102,7 @@ def test_cuda_recorded_decisions_are_the_eager_ones(env_id):
     policy = model.policy
     views = episode_views(model, env_id, 12)
     for steps in (32, 2):
-        graph = DecisionGraph(steps)
+        graph = DecisionGraph(steps, argmax=True)
         for view in views:
             with th.inference_mode():
                 eager = policy.decide(view, deterministic=True)
@@ -107,13 +114,20 @@ def test_cuda_recorded_decisions_are_the_eager_ones(env_id):
             free, M = view.entity_mask, view.task_mask.shape[1]
             assert bool(((sampled.env_action == M) | free).all())  # only free entities are sent
         assert len(graph.recorded) == 2  # one shape, argmax and samples
-        assert graph.replays > 0 and (graph.fallbacks > 0) == (steps == 2)
+        assert graph.fallbacks > 0 if steps == 2 else graph.replays > 0 and graph.fallbacks == 0
+    policy.decision_graph = samples_only = DecisionGraph()  # as cuda_graph=True sets it: the argmax stays eager
+    with th.inference_mode():
+        assert same(policy.decide(views[0], deterministic=True), eager)
+        assert not samples_only.recorded
+        policy.decide(views[0], deterministic=False)
+    assert len(samples_only.recorded) == 1 and samples_only.replays == 1
 
 
 @needs_cuda
 def test_cuda_graph_training_collects_by_replays():
     """The zoo's MT block with ``cuda_graph=True`` on CUDA trains and collects its samples by replayed decisions."""
     model = TwoStageSAC.from_zoo("TaskAlloc/MT-v0", seed=0, device="cuda", cuda_graph=True, learning_starts=16)
+    model.zoo_callbacks = ()  # no DAgger phase
     model.learn(64)
     graph = model.policy.decision_graph
     assert graph is not None and graph.replays > 0

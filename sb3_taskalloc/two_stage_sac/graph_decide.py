@@ -8,8 +8,11 @@ once and each later decision of that shape is one replay and one host read: whet
 after its round's steps. If one was, the decision is decided again eagerly, so a recorded decision is always the
 eager one; for the argmax it is the same bit for bit, samples draw from the graph's offsets of the CUDA random stream.
 
-Only the decisions the policy makes by itself are recorded (the argmax decoder and training's samples); a search or
-exact decoder, the uniform warm-up and ``rounds_out`` stay eager.
+Only the decisions the policy makes by itself are recorded: training's samples, and with ``DecisionGraph(argmax=True)``
+the argmax decoder's. A search or exact decoder, the uniform warm-up and ``rounds_out`` stay eager. The fixed steps
+cost GPU time where a round needs few picks: at the zoo's RBF block (n_envs 8) training collects 1.5 times as fast
+(decisions of 38 against 58 ms, 68.6 against 55.2 env steps/s with the recorded gradient step), one observation's
+argmax is slower replayed than eager, and at 1000 entities × 50 tasks 3.3 times as fast (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from typing import TYPE_CHECKING
 import torch as th
 
 from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.common.utils import check_counts
 from sb3_taskalloc.two_stage_sac.decoding import SAMPLED, Decoder, decide_preassigned
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round
 
@@ -90,14 +94,19 @@ class RecordedDecision:
 
 
 class DecisionGraph:
-    """The policy's own decisions (the argmax decoder, training's samples) on CUDA, each observation shape recorded once
-    (:class:`RecordedDecision`) and replayed; :meth:`decide` answers None where the eager path decides.
+    """The policy's own decisions on CUDA (training's samples; with ``argmax`` the argmax decoder's too), each
+    observation shape recorded once (:class:`RecordedDecision`) and replayed; :meth:`decide` answers None where the
+    eager path decides.
 
     :param steps: pick steps per round (:data:`DECISION_STEPS`)
+    :param argmax: record deterministic decisions too. ``cuda_graph=True`` leaves it off: one observation's decision
+        of the zoo's four-round policies took longer replayed than eager on an H200 (RBF 27.6 against 25.4 ms, MT 27.1
+        against 13.5), while at 1000 entities × 50 tasks it took 9.8 against 32.9 ms (docs/benchmarks.md)
     """
 
-    def __init__(self, steps: int = DECISION_STEPS) -> None:
-        self.steps = steps
+    def __init__(self, steps: int = DECISION_STEPS, argmax: bool = False) -> None:
+        check_counts({"steps": steps})
+        self.steps, self.argmax = steps, argmax
         self.recorded: dict[tuple, RecordedDecision] = {}
         self.replays = self.fallbacks = 0
 
@@ -108,10 +117,11 @@ class DecisionGraph:
         return (deterministic, *(tuple(x.shape) for x in view), memory)
 
     def decide(self, policy: TAMPolicy, view: ObsView, deterministic: bool, uniform: bool) -> Decision | None:
-        """The recorded decision of ``view``, or None: not on CUDA, a decoder of its own (a search, exact covers), the
-        uniform warm-up, or a team that needed more than :attr:`steps` pick steps (counted in :attr:`fallbacks`)."""
-        own = type(policy.decoder) is Decoder or not deterministic
-        if not (view.pair_cost.is_cuda and policy.preassign and own and not uniform):
+        """The recorded decision of ``view``, or None: not on CUDA, a deterministic decision without :attr:`argmax` or
+        by a decoder of its own (a search, exact covers), the uniform warm-up, or a team that needed more than
+        :attr:`steps` pick steps (counted in :attr:`fallbacks`)."""
+        own = self.argmax and type(policy.decoder) is Decoder if deterministic else not uniform
+        if not (view.pair_cost.is_cuda and policy.preassign and own):
             return None
         key = self.key(policy, view, deterministic)
         if key not in self.recorded:

@@ -73,11 +73,11 @@ def latency_fields(ms: np.ndarray) -> dict[str, Any]:
 
 
 def recorded_fields(policy: Any, timed: Callable[[], np.ndarray]) -> dict[str, Any]:
-    """``timed()``'s figures with ``policy``'s own decisions recorded as CUDA graphs (:class:`.DecisionGraph`, as
-    ``cuda_graph=True`` sets it), and how many decisions replayed and fell back to the eager path."""
+    """``timed()``'s figures with ``policy``'s argmax decisions recorded as CUDA graphs
+    (``DecisionGraph(argmax=True)``), and how many decisions replayed and fell back to the eager path."""
     from sb3_taskalloc.two_stage_sac.graph_decide import DecisionGraph
 
-    graph = policy.decision_graph = DecisionGraph()
+    graph = policy.decision_graph = DecisionGraph(argmax=True)
     try:
         ms = timed()
     finally:
