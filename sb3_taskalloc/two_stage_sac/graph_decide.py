@@ -10,9 +10,9 @@ eager one; for the argmax it is the same bit for bit, samples draw from the grap
 
 Only the decisions the policy makes by itself are recorded: training's samples, and with ``DecisionGraph(argmax=True)``
 the argmax decoder's. A search or exact decoder, the uniform warm-up and ``rounds_out`` stay eager. The fixed steps
-cost GPU time where a round needs few picks: at the zoo's RBF block (n_envs 8) training collects 1.5 times as fast
-(decisions of 38 against 58 ms, 68.6 against 55.2 env steps/s with the recorded gradient step), one observation's
-argmax is slower replayed than eager, and at 1000 entities × 50 tasks 3.3 times as fast (docs/benchmarks.md).
+cost GPU time where a round needs few picks. On an H200, RBF's zoo block (n_envs 8) decides in 38 against 58 ms and
+trains at 68.6 against 55.2 env steps/s (the gradient step recorded in both); one observation's four-round argmax is
+slower replayed than eager, and at 1000 entities × 50 tasks 3.4 times as fast (docs/benchmarks.md).
 """
 
 from __future__ import annotations
