@@ -275,10 +275,11 @@ def decode_round(
     :param deterministic: argmax picks (else sampled)
     :param temperature: T of sampled picks, drawn from softmax(logits / T)
     :param generator: the random stream of sampled picks (None: torch's global one)
-    :param fixed_picks: run all N pick steps, a done task's picks masked out (``valid`` false), with no host check in
-        between: a loop of fixed length and shapes that ``torch.compile(fullgraph=True)`` traces without a graph break
-        (with ``generator=None``; a generator object breaks the graph). The teams and pick orders are the same as the
-        default loop's, which stops once no task is active: on the CPU that check costs nothing and saves the steps
+    :param fixed_picks: run all N pick steps (or ``steps``), a done task's picks masked out (``valid`` false), with no
+        host check in between: a loop of fixed length and shapes that ``torch.compile(fullgraph=True)`` traces without
+        a graph break (with ``generator=None``; a generator object breaks the graph). The teams and pick orders are the
+        same as the default loop's, which stops once no task is active: on the CPU that check costs nothing and saves
+        the steps
     :param embedded: the pointer's entity embeddings of ``view`` (``head.embed_entities(view)``) where the caller has
         them already: (B, N, H), or (B / S, N, H) when the rows are S consecutive copies of each row of a round (a
         search's copies), which the pointer then scores in wider products
