@@ -14,6 +14,7 @@ import torch._dynamo
 import envs  # noqa: F401  (registers the TaskAlloc ids)
 from sb3_taskalloc import TwoStageSAC
 from sb3_taskalloc.common.torch_layers import ObsView
+from sb3_taskalloc.experiments.bench.common import episode_states
 from sb3_taskalloc.two_stage_sac.graph_decide import DecisionGraph, decide_fixed
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round
 
@@ -21,18 +22,10 @@ needs_cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA
 
 
 def episode_views(model: TwoStageSAC, env_id: str, n: int, seed: int = 5) -> list[ObsView]:
-    """The first ``n`` states of an episode the model's argmax plays, parsed on the model's device."""
-    env, views = gym.make(env_id), []
-    obs, _ = env.reset(seed=seed)
-    for _ in range(n):
-        with th.no_grad():
-            view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
-            action = model.policy.decide(view, deterministic=True).env_action[0].cpu().numpy()
-        views.append(view)
-        obs, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            break
-    return views
+    """The first ``n`` states of an episode the model's argmax plays (:func:`.episode_states`), parsed on the model's
+    device."""
+    with th.no_grad():
+        return [model.policy.parse(model.policy.obs_to_tensor(obs)[0]) for obs in episode_states(model, env_id, [seed])[:n]]
 
 
 def same(a: Decision, b: Decision) -> bool:

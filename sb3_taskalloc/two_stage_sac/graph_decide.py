@@ -24,6 +24,7 @@ import torch as th
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts
 from sb3_taskalloc.two_stage_sac.decoding import SAMPLED, Decoder, decide_preassigned
+from sb3_taskalloc.two_stage_sac.graph_step import copy_into, on_side_stream, shapes
 from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round
 
 if TYPE_CHECKING:
@@ -72,20 +73,15 @@ class RecordedDecision:
         with th.inference_mode(False):  # plain tensors, which callers in and out of inference mode may copy into
             self.view = ObsView(*(x.clone() for x in view))
         with th.inference_mode():
-            side = th.cuda.Stream()
-            side.wait_stream(th.cuda.current_stream())
-            with th.cuda.stream(side):
-                for _ in range(DECISION_WARMUP):
-                    decide_fixed(policy, self.view, deterministic, steps)
-            th.cuda.current_stream().wait_stream(side)
+            for _ in range(DECISION_WARMUP):
+                on_side_stream(lambda: decide_fixed(policy, self.view, deterministic, steps))
             self.graph = th.cuda.CUDAGraph()
             with th.cuda.graph(self.graph):
                 self.decision, self.unfinished = decide_fixed(policy, self.view, deterministic, steps)
 
     def __call__(self, view: ObsView) -> Decision | None:
         """The decision of ``view`` (copied into the graph's input), or None where a team needed more steps."""
-        for old, new in zip(self.view, view, strict=True):
-            old.copy_(new, non_blocking=True)
+        copy_into(self.view, view)
         self.graph.replay()
         if bool(self.unfinished):  # the decision's one host read
             return None
@@ -114,7 +110,7 @@ class DecisionGraph:
     def key(policy: TAMPolicy, view: ObsView, deterministic: bool) -> tuple:
         """What a recording is bound to: the input shapes, argmax or samples, and the parameters' memory."""
         memory = tuple(p.data_ptr() for p in policy.parameters())
-        return (deterministic, *(tuple(x.shape) for x in view), memory)
+        return (deterministic, *shapes(view), memory)
 
     def decide(self, policy: TAMPolicy, view: ObsView, deterministic: bool, uniform: bool) -> Decision | None:
         """The recorded decision of ``view``, or None: not on CUDA, a deterministic decision without :attr:`argmax` or

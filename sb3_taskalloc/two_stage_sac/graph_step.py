@@ -13,7 +13,7 @@ each new minibatch, copied into the recorded input tensors. The target networks'
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import torch as th
@@ -79,11 +79,7 @@ class CUDAGraphStep(GradientStep):
             if self.calls == 0:
                 self.make_capturable()
             self.calls += 1
-            side = th.cuda.Stream()
-            side.wait_stream(th.cuda.current_stream())
-            with th.cuda.stream(side):
-                super().__call__(data, logs)
-            th.cuda.current_stream().wait_stream(side)
+            on_side_stream(lambda: super(CUDAGraphStep, self).__call__(data, logs))
             return
         if self.graph is None:
             self.record(data)
@@ -110,7 +106,7 @@ def padded_updates(model: TwoStageSAC) -> list[PreAssignUpdate | SelectUpdate]:
     return [type(update)(model, padded=True) for update in model.updates]
 
 
-def _tensors(data: TwoStageReplayBufferSamples) -> Iterator[th.Tensor]:
+def _tensors(data: tuple[Any, ...]) -> Iterator[th.Tensor]:
     for field in data:
         if isinstance(field, dict):
             yield from field.values()
@@ -118,15 +114,26 @@ def _tensors(data: TwoStageReplayBufferSamples) -> Iterator[th.Tensor]:
             yield field
 
 
-def shapes(data: TwoStageReplayBufferSamples) -> list[tuple[int, ...]]:
-    """The shapes of a minibatch's tensors, which a recorded graph is bound to."""
+def shapes(data: tuple[Any, ...]) -> list[tuple[int, ...]]:
+    """The shapes of a recorded graph's inputs (a minibatch, an :class:`~.ObsView`: a tuple of tensors, dicts of
+    tensors or None), which the graph is bound to."""
     return [tuple(x.shape) for x in _tensors(data)]
 
 
-def copy_into(inputs: TwoStageReplayBufferSamples, data: TwoStageReplayBufferSamples) -> None:
-    """Copy a new minibatch into the recorded one's tensors (of the same shapes)."""
+def copy_into(inputs: tuple[Any, ...], data: tuple[Any, ...]) -> None:
+    """Copy new inputs into a recorded graph's input tensors (of the same shapes, :func:`shapes`)."""
     for old, new in zip(_tensors(inputs), _tensors(data), strict=True):
         old.copy_(new, non_blocking=True)
+
+
+def on_side_stream(run: Callable[[], object]) -> None:
+    """``run()`` on a new CUDA stream after the current stream's work, which then waits for it: how the eager runs
+    before a recording go (PyTorch's whole-network capture recipe)."""
+    side = th.cuda.Stream()
+    side.wait_stream(th.cuda.current_stream())
+    with th.cuda.stream(side):
+        run()
+    th.cuda.current_stream().wait_stream(side)
 
 
 def gradient_step(model: TwoStageSAC) -> GradientStep:
