@@ -33,10 +33,13 @@ def filled(device: str = "cpu", search: bool = True, **policy_kwargs: Any) -> Tw
     return model
 
 
-def run_steps(model: TwoStageSAC, step: graph_step.GradientStep, n: int, rows: int = 16) -> dict[str, list[float]]:
-    """``n`` gradient steps of ``step`` on the minibatches and random streams of seeds 0..n−1; the logged values."""
+def run_steps(
+    model: TwoStageSAC, step: graph_step.GradientStep, n: int, rows: int = 16, first: int = 0
+) -> dict[str, list[float]]:
+    """``n`` gradient steps of ``step`` on the minibatches and random streams of seeds first..first+n−1; the logged
+    values."""
     logs: dict[str, list[th.Tensor]] = defaultdict(list)
-    for k in range(n):
+    for k in range(first, first + n):
         np.random.seed(k)  # the replay buffer samples with numpy's global stream
         th.manual_seed(k)
         step(model.replay_buffer.sample(rows), logs)
@@ -58,15 +61,37 @@ def assert_same_models(a: TwoStageSAC, b: TwoStageSAC, tol: float) -> None:
         th.testing.assert_close(p, q, atol=tol, rtol=0, msg=name)
 
 
+def assert_same_gradients(a: TwoStageSAC, b: TwoStageSAC, rtol: float) -> None:
+    """Each parameter's gradient of the last step, up to ``rtol`` of the tensor's largest entry."""
+    for (name, p), q in zip(a.policy.named_parameters(), b.policy.parameters(), strict=True):
+        if p.grad is None or q.grad is None:
+            assert p.grad is None and (q.grad is None or not q.grad.any()), name
+            continue
+        th.testing.assert_close(p.grad, q.grad, atol=rtol * float(p.grad.abs().max()) + 1e-12, rtol=0, msg=name)
+
+
+def assert_padded_is_eager(eager: TwoStageSAC, pad: TwoStageSAC, n: int = 3) -> dict[str, list[float]]:
+    """The padded step against the eager one from the same weights: the first step's gradients, then the logs of ``n``
+    steps. Weights are not compared: Adam's normalised step turns a rounding-level difference in a gradient near 0
+    into a difference of the learning rate's size, in either direction, on some CPUs."""
+    logs = run_steps(eager, graph_step.GradientStep(eager, eager.updates), 1)
+    padded_logs = run_steps(pad, padded(pad), 1)
+    assert_same_gradients(eager, pad, 1e-4)
+    for key, values in run_steps(eager, graph_step.GradientStep(eager, eager.updates), n - 1, first=1).items():
+        logs[key] += values
+    for key, values in run_steps(pad, padded(pad), n - 1, first=1).items():
+        padded_logs[key] += values
+    assert_same_logs(logs, padded_logs, 1e-5, 1e-6)
+    return logs
+
+
 def test_padded_gradient_step_is_the_eager_one():
     """What the graph records, the padded updates of both stages with the team search, run eagerly: the same losses,
-    temperatures and search statistics as the eager step, and the same weights after three steps, up to rounding."""
+    temperatures and search statistics as the eager step over three steps, and the same gradients, up to rounding."""
     eager, pad = filled(), filled()
     assert [type(u).__name__ for u in eager.updates] == ["PreAssignUpdate", "SelectUpdate"]
-    logs = run_steps(eager, graph_step.GradientStep(eager, eager.updates), 3)
+    logs = assert_padded_is_eager(eager, pad)
     assert logs["select_search_loss"][0] != 0  # the search found better teams: its term is in the step
-    assert_same_logs(logs, run_steps(pad, padded(pad), 3), 1e-5, 1e-6)
-    assert_same_models(eager, pad, 1e-6)
 
 
 def test_padded_gradient_step_is_the_eager_one_on_the_pointers_own_costs():
@@ -74,11 +99,9 @@ def test_padded_gradient_step_is_the_eager_one_on_the_pointers_own_costs():
     padded step reads the same costs as the eager one, so the graph records what the eager step trains."""
     values = {"theta": [-0.114, -0.041, 0.010], "surcharge": 0.64}
     eager, pad = filled(select_values=values), filled(select_values=values)
-    logs = run_steps(eager, graph_step.GradientStep(eager, eager.updates), 3)
+    logs = assert_padded_is_eager(eager, pad)
     plain = filled()
     assert logs["select_actor_loss"] != run_steps(plain, graph_step.GradientStep(plain, plain.updates), 3)["select_actor_loss"]
-    assert_same_logs(logs, run_steps(pad, padded(pad), 3), 1e-5, 1e-6)
-    assert_same_models(eager, pad, 1e-6)
 
 
 def test_cuda_graph_settings_are_checked_on_every_device():

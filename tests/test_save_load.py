@@ -161,8 +161,12 @@ def test_wrong_env_family_refused(tmp_path):
     model.save(tmp_path / "rbf")
     with pytest.raises(ValueError, match="features per row"):
         TwoStageSAC.load(tmp_path / "rbf", env=gym.make("TaskAlloc/Almighty-v0"))
-    with pytest.raises((ValueError, AssertionError), match="MultiDiscrete"):
+    with pytest.raises(ValueError, match="TaskAlloc Dict observation space"):
         TwoStageSAC("TAMPolicy", "CartPole-v1")
+    almighty = gym.make("TaskAlloc/Almighty-v0")
+    almighty.action_space = gym.spaces.MultiDiscrete([3] * 25)  # the observation's layout with the wrong choices
+    with pytest.raises(ValueError, match=r"MultiDiscrete\(\[10\] \* 25\)"):
+        TwoStageSAC("TAMPolicy", almighty)
 
 
 def test_vec_normalize_refused():

@@ -10,7 +10,6 @@ from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -151,7 +150,7 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
             seed=seed,
             use_sde=False,
             sde_support=False,
-            supported_action_spaces=(spaces.MultiDiscrete,),
+            supported_action_spaces=None,  # _setup_model's check_spaces names the observation and action layout
             support_multi_env=True,
         )
         legacy.check_policy_kwargs(self.policy_class, self.policy_kwargs)
