@@ -127,6 +127,52 @@ def test_ctrl_c_during_dagger_keeps_the_iterations_done(monkeypatch):
     assert np.isfinite(model.predict(obs, deterministic=True)[0]).all()
 
 
+class _CtrlCAt(BaseCallback):
+    """Raises KeyboardInterrupt at env step ``steps``, as Ctrl-C does in a user's own script."""
+
+    def __init__(self, steps: int) -> None:
+        super().__init__()
+        self.steps = steps
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.steps:
+            raise KeyboardInterrupt
+        return True
+
+
+@pytest.mark.parametrize("where", ["env step", "gradient step"])
+def test_ctrl_c_in_learn_leaves_a_model_that_saves_and_trains_on(tmp_path, monkeypatch, where):
+    """Ctrl-C in ``model.learn`` (between env steps, or inside a gradient step before its optimizer steps) ends the
+    call with KeyboardInterrupt, as in SB3; ``model`` holds what it learned so far: it saves, loads to the same
+    decisions and learns on from the step it reached (the README's quick start relies on it)."""
+    model = _rbf_model()
+    callback = None
+    if where == "env step":
+        callback = _CtrlCAt(20)
+    else:
+        real, calls = th.optim.Adam.step, []
+
+        def interrupted(self, *args, **kwargs):  # the fifth optimizer step of training is interrupted
+            calls.append(1)
+            if len(calls) == 5:
+                raise KeyboardInterrupt
+            return real(self, *args, **kwargs)
+
+        monkeypatch.setattr(th.optim.Adam, "step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        model.learn(40, callback=callback)
+    monkeypatch.undo()
+    reached = model.num_timesteps
+    assert 8 < reached < 40
+    model.save(tmp_path / "m")
+    loaded = TwoStageSAC.load(tmp_path / "m", device="cpu")
+    obs, _ = gym.make("TaskAlloc/RBF-v0").reset(seed=3)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    updates = model._n_updates
+    model.learn(8, reset_num_timesteps=False)
+    assert model.num_timesteps == reached + 8 and model._n_updates > updates
+
+
 def test_no_command_writes_into_results_by_default():
     """Every command's output folder defaults to ``runs/`` (or another gitignored folder): ``results/`` holds the
     committed reports and changes only when ``--out`` asks for it."""
