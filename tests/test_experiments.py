@@ -348,8 +348,36 @@ def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monke
     assert new_run().select_dagger == 0 and new_run().key == off.key
     calls = record_distill_select(monkeypatch)
     record = run.run_seed(0)
-    assert [kw for _, kw in calls] == [{"iterations": 2, "imitation": "set", "seed": learn.dagger_seed(0), "episodes": 3}]
+    dagger = {"iterations": 2, "imitation": "set", "seed": learn.dagger_seed(0), "progress_bar": False, "episodes": 3}
+    assert [kw for _, kw in calls] == [dagger]
     assert len(record["dagger"]) == 2 and [p[0] for p in record["curve"][-2:]] == [9, 12]  # 3 one-step episodes each
+
+
+def test_learning_experiment_with_one_job_shows_the_seeds_phases(tmp_path, monkeypatch, capsys):
+    """With one job (the default) the seed in progress says which phase it is in, and its training steps and DAgger
+    iterations show progress bars; without progress nothing is printed and no bar is asked for."""
+    from sb3_taskalloc import TwoStageSAC
+    from sb3_taskalloc.experiments import learn
+
+    bars: list[bool] = []
+    real = TwoStageSAC.learn
+
+    def recorded(self: TwoStageSAC, *args: Any, progress_bar: bool = False, **kw: Any) -> Any:
+        bars.append(progress_bar)
+        return real(self, *args, progress_bar=False, **kw)  # the bar itself is SB3's
+
+    monkeypatch.setattr(TwoStageSAC, "learn", recorded)
+    calls = record_distill_select(monkeypatch)
+    kwargs = {"learning_starts": 2, "batch_size": 4, "policy_kwargs": {"hidden_dim": 8}}
+    for progress, out in ((True, tmp_path / "a"), (False, tmp_path / "b")):
+        run = learn.LearnRun("Almighty", 1, steps=6, eval_episodes=2, eval_every=3, algo_kwargs=kwargs, planners=(),
+                             out=out, select_dagger=1)  # fmt: skip
+        run.run(progress=progress)
+        printed = capsys.readouterr()
+        assert bars[-1] is progress and calls[-1][1]["progress_bar"] is progress
+        phases = ["Almighty learning, seed 0 (1 of 1): training", "Almighty learning, seed 0: evaluating the trained"]
+        assert all((phase in printed.out) is progress for phase in phases), printed.out
+        assert ("select-stage DAgger" in printed.err) is progress
 
 
 def test_learning_experiment_reports_no_critic_where_none_trained(tmp_path):

@@ -106,6 +106,8 @@ class LearnRun:
         defaults = SelectDAggerCallback().kwargs
         #: The block's DAgger keywords other than the iterations and the loss, where they differ from the defaults.
         self.dagger_kwargs: dict[str, Any] = {k: v for k, v in zoo.items() if v != defaults[k]}
+        #: Set by :meth:`run` with one job: each seed's training steps and DAgger iterations show progress bars.
+        self.progress_bars = False
 
     @property
     def iterations(self) -> int:
@@ -159,6 +161,7 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
         seeds = eval_seeds(seed, self.eval_episodes)
+        self._say(f"seed {seed} ({seed - self.first_seed + 1} of {self.seeds}): training")
         found = self._finished_without_dagger(seed)
         model, record, curve = found if found is not None else self._train(seed, seeds)
         if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
@@ -166,6 +169,7 @@ class LearnRun:
         if self.select_dagger:
             self._dagger(model, seed, record, curve, path)
         record["curve"] = curve.points
+        self._say(f"seed {seed}: evaluating the trained model, its stages, the diagnosis and the baselines")
         record["trained"] = evaluation.episode_returns(model, self.env_id, seeds)
         record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
         record.update(learn_report.diagnose_record(self, model, seed))
@@ -173,6 +177,11 @@ class LearnRun:
         model.save(path.with_suffix(".zip"))
         atomic_write_text(path, json.dumps(record) + "\n")
         return record
+
+    def _say(self, what: str) -> None:
+        """A line on the seed's phase where the phases show progress bars (one job)."""
+        if self.progress_bars:
+            print(f"{self.env} learning, {what}", flush=True)
 
     def _curve(self, seed: int) -> Curve:
         if self.validation_episodes:
@@ -193,7 +202,7 @@ class LearnRun:
         }
         curve = self._curve(seed)
         t0 = time.perf_counter()
-        model.learn(self.steps, callback=curve)
+        model.learn(self.steps, callback=curve, progress_bar=self.progress_bars)
         record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
         record["curve_seconds"] = curve.seconds
         if self.device != "cpu":  # the evaluations decide one observation at a time, which is faster on the CPU
@@ -232,6 +241,7 @@ class LearnRun:
             imitation=self.imitation,
             seed=dagger_seed(seed),
             callback=point,
+            progress_bar=self.progress_bars,
             **self.dagger_kwargs,
         )
         record["dagger_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
@@ -277,6 +287,8 @@ class LearnRun:
 
         from tqdm.auto import tqdm
 
+        # One job: the seed in progress shows its steps and DAgger iterations; several: one bar over the seeds.
+        self.progress_bars = progress and jobs == 1
         with ExitStack() as stack:
             results: Iterable[dict[str, Any]] = map(self.run_seed, self.seed_range)
             if jobs > 1:
@@ -288,7 +300,8 @@ class LearnRun:
                     ProcessPoolExecutor(jobs, mp_context=context, initializer=one_thread, initargs=(os.getpid(),))
                 )
                 results = pool.map(self.run_seed, self.seed_range)
-            records = list(tqdm(results, total=self.seeds, desc=f"{self.env} learning", disable=not progress))
+            bar = progress and not self.progress_bars
+            records = list(tqdm(results, total=self.seeds, desc=f"{self.env} learning", disable=not bar))
         return self.write(records)
 
     def write(self, records: list[dict[str, Any]]) -> Path:
