@@ -959,7 +959,7 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     assert not (tmp_path / "cli").exists()
 
 
-def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monkeypatch):
+def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monkeypatch, capsys):
     """``more_episodes`` evaluates the finished models on the held-out reset seeds that follow the run's own (never
     another seed's), against Greedy only, and reports each seed over the run's and the further episodes, paired by
     episode; zero-shot, over the zero-shot re-evaluation's rows and the further ones; bad values are refused before
@@ -982,7 +982,9 @@ def test_learning_experiment_evaluates_further_held_out_episodes(tmp_path, monke
         lambda agent, env_id, seeds: evaluated.append(tuple(seeds)) or returns(agent, env_id, seeds),
     )
     monkeypatch.setattr("sb3_taskalloc.baselines.MILPAllocator", lambda *a, **k: pytest.fail("the MILP ran"))
+    capsys.readouterr()
     path = run.reevaluate(more_episodes=3)
+    assert "Almighty re-evaluation, 3 further held-out episodes per seed: 100%" in capsys.readouterr().err  # its bar
     assert path.name == "Almighty_more_episodes_3.md"
     assert sorted(set(evaluated)) == [tuple(evaluation.eval_seeds(seed, 5)[2:]) for seed in (0, 1)] and len(evaluated) == 6
     text = path.read_text()

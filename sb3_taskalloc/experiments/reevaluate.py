@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
+from tqdm.auto import tqdm
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
 from sb3_taskalloc.experiments import evaluation
@@ -78,7 +79,7 @@ def reevaluate(
     suffix, how, flags = _reevaluation_labels(shift, decoder, config, more_episodes)
     stem = Path(run.out) / (run.env + suffix)  # a setting's number may hold a dot: the suffixes are appended, not replaced
     rows: list[dict[str, Any]] = []
-    for seed in run.seed_range:
+    for seed in tqdm(run.seed_range, desc=f"{run.env} re-evaluation, {how}"):
         path = run.seed_path(seed).with_suffix(".zip")
         if not path.exists():
             raise FileNotFoundError(f"seed {seed} has no trained model at {path}: run the experiment first")
