@@ -691,8 +691,9 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path, sho
         assert run.run_seed(0)["q_corr"] == 99.0
 
 
-def test_diagnose_cli_trains_on_n_envs(tmp_path):
-    """``diagnose --algo-kwargs "{n_envs: 2}"`` trains on a VecEnv of 2 envs (the zoo's key), as ``learn`` does."""
+def test_diagnose_cli_trains_on_n_envs(tmp_path, capsys):
+    """``diagnose --algo-kwargs "{n_envs: 2}"`` trains on a VecEnv of 2 envs (the zoo's key), as ``learn`` does, and
+    shows its branched episodes, the longest part, as a progress bar."""
     import json
 
     from sb3_taskalloc.experiments.__main__ import main
@@ -702,6 +703,7 @@ def test_diagnose_cli_trains_on_n_envs(tmp_path):
     main([*args, "--branches", "2", "--branch-stride", "25"])
     figures = json.loads((tmp_path / "diagnose_EPT-v0.json").read_text())
     assert figures["episodes"] == 1 and figures["branch_states"] == 4  # EPT's 100 steps, every 25th branched
+    assert "branched episodes: 100%" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([*args, "--branches", "1"])  # no spread to measure with one rollout
 

@@ -255,7 +255,10 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
         model = TwoStageSAC("TAMPolicy", env, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)
-    path = write(diagnose(model, env_id, args.episodes, branches=args.branches, branch_stride=args.branch_stride), args.out)
+    path = write(
+        diagnose(model, env_id, args.episodes, branches=args.branches, branch_stride=args.branch_stride, progress=True),
+        args.out,
+    )
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}")
 

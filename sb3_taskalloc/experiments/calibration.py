@@ -86,7 +86,9 @@ def _branch_returns(model: Any, snapshot: gym.Env, action: np.ndarray, branches:
 
 
 @th.no_grad()
-def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int = 8, stride: int = 10) -> dict[str, Any]:
+def branch_calibration(
+    model: Any, env_id: str, seeds: list[int], branches: int = 8, stride: int = 10, progress: bool = False
+) -> dict[str, Any]:
     """The critic against the expected return (see the module docstring): the figures ``branch_states``,
     ``q_corr_expected``, ``q_scale_expected``, ``return_ceiling``, ``free_corr_q`` and ``free_corr_expected`` of
     :class:`Diagnosis`, and the ``advantage_*`` figures of :func:`advantage_figures`, measured on sampled episodes with
@@ -94,7 +96,10 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
 
     :param branches: rollouts per state (≥ 2: the ceiling needs their spread)
     :param stride: every ``stride``-th state of an episode is branched
+    :param progress: a progress bar over the episodes (each takes minutes on RBF)
     """
+    from tqdm.auto import tqdm
+
     if branches < 2 or stride < 1:
         raise ValueError(f"branches must be >= 2 and stride >= 1, got {branches} and {stride}")
     policy, gamma = model.policy, float(model.gamma)
@@ -107,7 +112,7 @@ def branch_calibration(model: Any, env_id: str, seeds: list[int], branches: int 
     env, limit = unlimited_env(env_id, gamma)
     cuda = [model.device.index or 0] if model.device.type == "cuda" else []
     q, returns, free, gaps, gap_returns = [], [], [], [], []
-    for s in seeds:
+    for s in tqdm(seeds, desc="branched episodes", disable=not progress):
         obs, _ = env.reset(seed=s)
         for t in range(limit if limit is not None else 10**9):
             view = policy.parse(policy.obs_to_tensor(obs)[0])

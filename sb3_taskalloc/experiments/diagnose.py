@@ -209,7 +209,13 @@ def task_outcomes(obs: dict[str, np.ndarray], candidates: np.ndarray, kept: np.n
 
 @th.no_grad()
 def diagnose(
-    model: Any, env_id: str, episodes: int = 3, seed: int = 10_000, branches: int = 8, branch_stride: int = 10
+    model: Any,
+    env_id: str,
+    episodes: int = 3,
+    seed: int = 10_000,
+    branches: int = 8,
+    branch_stride: int = 10,
+    progress: bool = False,
 ) -> Diagnosis:
     """Measure the model on ``episodes`` sampled and ``episodes`` deterministic episodes of ``env_id`` (seeds from
     ``seed``, disjoint from training seeds by default; ``seed`` also seeds the sampled decisions).
@@ -217,6 +223,7 @@ def diagnose(
     :param model: a :class:`~sb3_taskalloc.TwoStageSAC`
     :param branches: rollouts per branched state of :func:`branch_calibration` (0: skip it)
     :param branch_stride: every ``branch_stride``-th state of an episode is branched
+    :param progress: a progress bar over the branched episodes, the longest part
     """
     policy, gamma = model.policy, float(model.gamma)
     # The stage-1 critics train where a stage-1 update runs: where the pre-assign actor learns
@@ -231,7 +238,9 @@ def diagnose(
         th.manual_seed(seed)
         sampled = [_episode(model, long_env, seed + k, deterministic=False) for k in range(episodes)]
         branched = (
-            branch_calibration(model, env_id, [seed + k for k in range(episodes)], branches, branch_stride) if branches else {}
+            branch_calibration(model, env_id, [seed + k for k in range(episodes)], branches, branch_stride, progress)
+            if branches
+            else {}
         )
     deterministic = [_episode(model, env, seed + k, deterministic=True) for k in range(episodes)]
     nan = float("nan")
