@@ -91,7 +91,9 @@ def test_bench_quick_writes_json(tmp_path, capsys, which, keys):
         assert rows[0]["rounds"] == rows[1]["rounds"] > 0 and rows[0]["tasks"] >= rows[0]["rounds"]
         assert rows[0]["max_profit_difference"] < 1e-4
         assert rows[0]["speedup"] == pytest.approx(rows[1]["seconds"] / rows[0]["seconds"])
-    assert f"## {which}" in capsys.readouterr().out  # the printed table
+    printed = capsys.readouterr().out
+    assert printed.startswith(f"benchmark {which} (1 of 1): running\n")  # said before the minutes it may take
+    assert f"## {which}" in printed  # the printed table
 
 
 def test_bench_device_option(tmp_path, capsys):

@@ -630,8 +630,12 @@ def test_branch_calibration_branches_the_env_randomness():
     th.manual_seed(1)
     paired = branch_calibration(uniform, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
     assert paired["advantage_pairs"] == paired["branch_states"] == 2 and 0 <= paired["advantage_sign"] <= 1
+    points = {k: np.array(paired.pop(k)) for k in ("state_points", "pair_points")}  # the plot's (Q, Ḡ) and (ΔQ, ΔḠ)
+    assert points["state_points"].shape == points["pair_points"].shape == (2, 2)
+    assert np.mean(np.sign(points["pair_points"][:, 0]) == np.sign(points["pair_points"][:, 1])) == paired["advantage_sign"]
     th.manual_seed(1)  # reproducible: the pairs draw from their own seeded stream
     again = branch_calibration(uniform, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
+    assert all(np.array_equal(again.pop(k), v) for k, v in points.items())
     assert again == pytest.approx(paired, nan_ok=True)
     with pytest.raises(ValueError, match="branches"):
         branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=1)
@@ -693,7 +697,7 @@ def test_learning_experiment_completes_records_of_earlier_versions(tmp_path, sho
 
 def test_diagnose_cli_trains_on_n_envs(tmp_path, capsys):
     """``diagnose --algo-kwargs "{n_envs: 2}"`` trains on a VecEnv of 2 envs (the zoo's key), as ``learn`` does, and
-    shows its branched episodes, the longest part, as a progress bar."""
+    shows its branched episodes, the longest part, as a progress bar; the critic's plot is written beside the report."""
     import json
 
     from sb3_taskalloc.experiments.__main__ import main
@@ -704,6 +708,7 @@ def test_diagnose_cli_trains_on_n_envs(tmp_path, capsys):
     figures = json.loads((tmp_path / "diagnose_EPT-v0.json").read_text())
     assert figures["episodes"] == 1 and figures["branch_states"] == 4  # EPT's 100 steps, every 25th branched
     assert "branched episodes: 100%" in capsys.readouterr().err
+    assert len(figures["state_points"]) == 4 and (tmp_path / "diagnose_EPT-v0.png").stat().st_size > 0  # its plot
     with pytest.raises(SystemExit):
         main([*args, "--branches", "1"])  # no spread to measure with one rollout
 
@@ -893,7 +898,8 @@ def test_learning_experiment_teaches_the_pointer_by_dagger_after_training(tmp_pa
     monkeypatch.setattr(learn.LearnRun, "_train", lambda *a: pytest.fail("the finished run without DAgger was trained again"))
     calls = record_distill_select(monkeypatch)
     text = dagger.run(progress=False).read_text()
-    assert [kw for _, kw in calls] == [{"iterations": 2, "imitation": "sequence", "seed": learn.dagger_seed(0)}]
+    dagger = {"iterations": 2, "imitation": "sequence", "seed": learn.dagger_seed(0), "progress_bar": False}
+    assert [kw for _, kw in calls] == [dagger]
     assert "| untrained | trained | before DAgger | only actor learned |" in text and "--select-dagger 2" in text
     (record,) = json.loads((tmp_path / "Almighty.json").read_text())["seeds"]
     assert record["before_dagger"] == base["trained"] and record["untrained"] == base["untrained"]

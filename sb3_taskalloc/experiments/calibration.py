@@ -138,6 +138,9 @@ def branch_calibration(
     if len(q) < 2:
         return {**out, "branch_states": len(q)}
     figures = calibration_figures(np.asarray(q), np.stack(returns), np.asarray(free))
+    # The measurements themselves, for the diagnosis's plot: (Q, Ḡ) per state and (ΔQ, ΔḠ) per decision pair.
+    figures["state_points"] = [(float(v), float(g.mean())) for v, g in zip(q, returns, strict=True)]
+    figures["pair_points"] = [(float(v), float(d.mean())) for v, d in zip(gaps, gap_returns, strict=True)]
     if len(gaps) >= 2:
         figures.update(advantage_figures(np.asarray(gaps), np.stack(gap_returns)))
     else:

@@ -1,6 +1,7 @@
 """What the critic and the actor of a TwoStageSAC model are doing, measured on rollouts of its own policy.
 
-``python -m sb3_taskalloc.experiments diagnose --env RBF [--model PATH] [--steps N] [--episodes 3]`` reports:
+``python -m sb3_taskalloc.experiments diagnose --env RBF [--model PATH] [--steps N] [--episodes 3]`` reports (with a
+plot of the critic against the expected return, of states and of decision pairs, where states were branched):
 
 - critic calibration: on the states of sampled episodes, the correlation and the scale ratio (least-squares slope
   through the origin) of Q(s, c) = min_k AMIX^k(Q^k_i(s, c_i)) for the executed pre-assignment c against the
@@ -44,7 +45,7 @@ import json
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -96,6 +97,8 @@ class Diagnosis:
     advantage_corr: float = math.nan
     advantage_ceiling: float = math.nan
     advantage_sign: float = math.nan
+    state_points: list[tuple[float, float]] = field(default_factory=list)  # (Q, Ḡ) of each branched state
+    pair_points: list[tuple[float, float]] = field(default_factory=list)  # (ΔQ, ΔḠ) of each decision pair
 
     def table(self) -> str:
         """A Markdown table of the figures."""
@@ -274,7 +277,25 @@ def diagnose(
 
 
 def write(diagnosis: Diagnosis, out: str | Path) -> Path:
-    """``<out>/diagnose_<env>.json`` and ``.md``; :return: the Markdown path."""
+    """``<out>/diagnose_<env>.json`` and ``.md``, and ``.png`` where states were branched (the critic against the
+    expected return, of states and of decision pairs: :func:`.plots.plot_critic`); :return: the Markdown path."""
     stem = Path(out) / f"diagnose_{diagnosis.env.split('/')[-1]}"
     atomic_write_text(stem.with_suffix(".json"), json.dumps(asdict(diagnosis), indent=2) + "\n")
+    if diagnosis.state_points:
+        from sb3_taskalloc.experiments.plots import plot_critic
+
+        d = diagnosis
+        plot_critic(
+            d.state_points,
+            d.pair_points,
+            stem.with_suffix(".png"),
+            title=f"{d.env}: the stage-1 critic against the expected return Ḡ of {len(d.state_points)} branched states",
+            labels=(f"corr {d.q_corr_expected:.2f}, scale {d.q_scale_expected:.2f}", _pair_label(d)),
+        )
     return atomic_write_text(stem.with_suffix(".md"), diagnosis.table() + "\n")
+
+
+def _pair_label(d: Diagnosis) -> str:
+    if d.advantage_pairs < 2:
+        return f"{d.advantage_pairs} pairs: too few to measure"
+    return f"corr {d.advantage_corr:.2f}, ceiling {d.advantage_ceiling:.2f}, same sign {100 * d.advantage_sign:.0f} %"

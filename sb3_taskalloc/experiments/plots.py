@@ -1,4 +1,5 @@
-"""Every figure of the experiments (matplotlib, headless): learning curves, the Almighty figure, market incomes."""
+"""Every figure of the experiments (matplotlib, headless): learning curves, the Almighty figure, market incomes, the
+critic's diagnosis."""
 
 from __future__ import annotations
 
@@ -154,4 +155,36 @@ def plot_learning_progress(
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
+    return save_figure(fig, path)
+
+
+def plot_critic(
+    states: list[tuple[float, float]],
+    pairs: list[tuple[float, float]],
+    path: str | Path,
+    title: str = "",
+    labels: tuple[str, str] = ("", ""),
+) -> Path:
+    """Two scatters of the diagnosis: Q(s, c) against the expected return Ḡ of each branched state (does the critic
+    value states?) and Q(s, c) − Q(s, c′) against ΔḠ of each pair of decisions of one state (does it rank decisions,
+    what the pre-assign actor's gradient follows?), each with the diagonal of a critic on Ḡ's scale.
+
+    :param labels: each panel's figures (correlation, ceiling)
+    """
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    panels = (("states", "Ḡ (mean of the branches)", "Q(s, c)"), ("decision pairs", "ΔḠ", "ΔQ"))
+    for ax, points, (name, x, y), label in zip(axes, (states, pairs), panels, labels, strict=True):
+        xy = np.asarray(points, dtype=float).reshape(-1, 2)
+        ax.scatter(xy[:, 1], xy[:, 0], s=14, alpha=0.7, color="C0")
+        if len(xy):
+            lo, hi = float(xy.min()), float(xy.max())
+            ax.plot([lo, hi], [lo, hi], color="grey", ls=":", lw=1)
+        ax.axhline(0, color="grey", lw=0.5)
+        ax.axvline(0, color="grey", lw=0.5)
+        ax.set_xlabel(x)
+        ax.set_ylabel(y)
+        ax.set_title(f"{name} ({len(xy)}): {label}", fontsize=9)
+        ax.grid(alpha=0.3)
+    fig.suptitle(title, fontsize=10)
     return save_figure(fig, path)

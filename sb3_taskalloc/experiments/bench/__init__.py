@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from sb3_taskalloc.common.utils import atomic_write_text
 from sb3_taskalloc.experiments.bench.common import BenchFn, machine
 from sb3_taskalloc.experiments.bench.envs import bench_baselines, bench_envs
 from sb3_taskalloc.experiments.bench.policy import MT_DECODER, SEARCH, TEAM_SEARCH, bench_labels, bench_policy
@@ -106,7 +107,8 @@ def main(argv: list[str] | None = None) -> None:
     names = list(BENCHES) if args.which == "all" else [args.which]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for name in names:
+    for k, name in enumerate(names, 1):
+        print(f"benchmark {name} ({k} of {len(names)}): running", flush=True)  # some take minutes before their table
         rows = BENCHES[name](args)
         _print_table(name, rows)
         record = {
@@ -116,5 +118,5 @@ def main(argv: list[str] | None = None) -> None:
             "torch_threads": torch.get_num_threads(),
             "results": rows,
         }
-        (out / f"bench_{name}.json").write_text(json.dumps(record, indent=2))
+        atomic_write_text(out / f"bench_{name}.json", json.dumps(record, indent=2))  # a kill leaves the last one whole
         print(f"wrote {out / f'bench_{name}.json'}")
