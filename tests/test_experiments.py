@@ -599,6 +599,14 @@ def test_advantage_figures_separate_the_critic_from_the_noise():
     assert abs(blind["advantage_corr"]) < 0.02 and blind["advantage_sign"] == pytest.approx(0.5, abs=0.01)
     with pytest.raises(ValueError, match="K >= 2"):
         advantage_figures(delta, differences[:, :1])
+    # Pairs whose every branch returned the same (the same teams sent, nothing after differed) have no order: they are
+    # counted apart, not as disagreements, whatever ΔQ says of them.
+    tied = np.vstack([differences[:100], np.zeros((300, 4))])
+    some = advantage_figures(np.concatenate([delta[:100], rng.normal(size=300)]), tied)
+    alone = advantage_figures(delta[:100], tied[:100])
+    assert some["advantage_ties"] == 300 and alone["advantage_ties"] == 0
+    assert some["advantage_sign"] == alone["advantage_sign"] > 0.6
+    assert np.isnan(advantage_figures(delta[:3], np.zeros((3, 4)))["advantage_sign"])
 
 
 def test_branch_calibration_branches_the_env_randomness():
@@ -771,7 +779,7 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch,
     header = "| seed | untrained | trained | only actor learned | only pointer learned | Greedy | MILP | GeneticAlgorithm |"
     assert header in text and "trained > Greedy:" in text
     assert "| scale Q/G | corr(Q, Ḡ) | scale Q/Ḡ | ceiling | corr(Q, free) | corr(Ḡ, free) | pairs |" in text
-    assert "| pairs | corr(ΔQ, ΔḠ) | ΔḠ ceiling | same sign | training s |" in text
+    assert "| pairs | tied | corr(ΔQ, ΔḠ) | ΔḠ ceiling | same sign | training s |" in text
     assert "a perfect critic would reach corr(Q, G)" in text
     assert f"the MILP stops at {learn.MILP_NODE_LIMIT} HiGHS nodes per solve" in text  # a stop by work, its gap reported
     data = json.loads((tmp_path / "EPT.json").read_text())

@@ -106,7 +106,7 @@ def branch_calibration(
     nan = float("nan")
     out: dict[str, Any] = dict(branch_states=0, q_corr_expected=nan, q_scale_expected=nan, return_ceiling=nan)
     out.update(free_corr_q=nan, free_corr_expected=nan, advantage_pairs=0, advantage_corr=nan, advantage_ceiling=nan)
-    out.update(advantage_sign=nan)
+    out.update(advantage_sign=nan, advantage_ties=0)
     if policy.actor is None or policy.critic is None:
         return out
     env, limit = unlimited_env(env_id, gamma)
@@ -145,6 +145,7 @@ def branch_calibration(
         figures.update(advantage_figures(np.asarray(gaps), np.stack(gap_returns)))
     else:
         figures.update(advantage_pairs=len(gaps), advantage_corr=nan, advantage_ceiling=nan, advantage_sign=nan)
+        figures.update(advantage_ties=0)
     return figures
 
 
@@ -160,7 +161,9 @@ def advantage_figures(gaps: np.ndarray, differences: np.ndarray) -> dict[str, An
     With the branches of both decisions paired by their env seeds, d_k = G_k(c) − G_k(c′) = Δμ + ε_k. The paired means
     d̄ estimate Δμ = E[G|s,c] − E[G|s,c′] with noise Var(ε)/K, so a critic whose ΔQ equals Δμ correlates with d̄ by
     sqrt(Var Δμ / Var d̄): the ceiling of corr(ΔQ, ΔḠ). Same sign: the share of pairs whose ΔQ and d̄ agree in sign,
-    i.e. where the critic prefers the decision whose branches did better.
+    i.e. where the critic prefers the decision whose branches did better, among the pairs whose branches differ:
+    two decisions whose every branch returned the same (the pointer sent the same teams, and nothing after differed)
+    have no order to agree with, and are counted as ``advantage_ties`` instead.
 
     :param gaps: (P,) Q(s, c) − Q(s, c′) of the decision pairs
     :param differences: (P, K) the paired branch returns G_k(c) − G_k(c′)
@@ -170,11 +173,13 @@ def advantage_figures(gaps: np.ndarray, differences: np.ndarray) -> dict[str, An
     mean = differences.mean(1)
     noise = float(differences.var(1, ddof=1).mean()) / differences.shape[1]  # Var of a pair's mean around Δμ
     total = float(mean.var(ddof=1))
+    ordered = np.abs(differences).max(1) > 1e-9  # some branch told the two decisions apart
     return dict(
         advantage_pairs=len(gaps),
         advantage_corr=_corr(gaps, mean),
         advantage_ceiling=math.sqrt(max(total - noise, 0.0) / total) if total > 0 else float("nan"),
-        advantage_sign=float(np.mean(np.sign(gaps) == np.sign(mean))),
+        advantage_sign=float(np.mean(np.sign(gaps[ordered]) == np.sign(mean[ordered]))) if ordered.any() else math.nan,
+        advantage_ties=int((~ordered).sum()),
     )
 
 

@@ -97,6 +97,7 @@ class Diagnosis:
     advantage_corr: float = math.nan
     advantage_ceiling: float = math.nan
     advantage_sign: float = math.nan
+    advantage_ties: int = 0  # pairs whose branches all returned the same: left out of the same-sign share
     state_points: list[tuple[float, float]] = field(default_factory=list)  # (Q, Ḡ) of each branched state
     pair_points: list[tuple[float, float]] = field(default_factory=list)  # (ΔQ, ΔḠ) of each decision pair
 
@@ -117,7 +118,8 @@ class Diagnosis:
             ),
             ("corr with the number of free entities: Q / Ḡ", f"{self.free_corr_q:.3f} / {self.free_corr_expected:.3f}"),
             (
-                f"decision pairs ({self.advantage_pairs}): corr(ΔQ, ΔḠ); its ceiling; same sign",
+                f"decision pairs ({self.advantage_pairs}, {self.advantage_ties} with equal returns): corr(ΔQ, ΔḠ); its "
+                "ceiling; same sign, of the pairs whose returns differ",
                 f"{self.advantage_corr:.3f}; {self.advantage_ceiling:.3f}; {100 * self.advantage_sign:.1f} %",
             ),
             ("entropy-inclusive return G^H, mean; corr(Q, G^H)", f"{self.soft_return_mean:.3f}, {self.q_corr_soft:.3f}"),
@@ -298,4 +300,5 @@ def write(diagnosis: Diagnosis, out: str | Path) -> Path:
 def _pair_label(d: Diagnosis) -> str:
     if d.advantage_pairs < 2:
         return f"{d.advantage_pairs} pairs: too few to measure"
-    return f"corr {d.advantage_corr:.2f}, ceiling {d.advantage_ceiling:.2f}, same sign {100 * d.advantage_sign:.0f} %"
+    sign = f"same sign {100 * d.advantage_sign:.0f} % of {d.advantage_pairs - d.advantage_ties}"
+    return f"corr {d.advantage_corr:.2f}, ceiling {d.advantage_ceiling:.2f}, {sign}"

@@ -29,12 +29,15 @@ CRITIC_COLUMNS = {
     "free_corr_q": "corr(Q, free)",
     "free_corr_expected": "corr(Ḡ, free)",
     "advantage_pairs": "pairs",
+    "advantage_ties": "tied",
     "advantage_corr": "corr(ΔQ, ΔḠ)",
     "advantage_ceiling": "ΔḠ ceiling",
     "advantage_sign": "same sign",
 }
 CRITIC_BRANCHED = ["q_corr_expected", "q_scale_expected", "return_ceiling", "free_corr_q", "free_corr_expected"]
-CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_corr", "advantage_ceiling", "advantage_sign"]
+CRITIC_ADVANTAGE = ["advantage_pairs", "advantage_ties", "advantage_corr", "advantage_ceiling", "advantage_sign"]
+#: Counts among the critic's figures (no decimals).
+COUNTS = ("advantage_pairs", "advantage_ties")
 
 
 def has_branched(records: list[dict[str, Any]], keys: list[str] = CRITIC_BRANCHED) -> bool:
@@ -135,10 +138,10 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
         "|---" * len(header) + "|",
     ]
     for k, r in enumerate(records):
-        figures = [f"{r[c]:.0f}" if c == "advantage_pairs" else f"{r[c]:.2f}" for c in critic]
+        figures = [f"{r[c]:.0f}" if c in COUNTS else f"{r[c]:.2f}" for c in critic]
         lines.append(_row([str(r["seed"]), *(f"{means[c][k]:.1f}" for c in shown), *figures, f"{r['train_seconds']:.0f}"]))
     summary = [f"{np.mean(means[c]):.1f} ± {np.std(means[c]):.1f}" for c in shown]
-    critic_means = [_seed_mean_cell(records, c, 1 if c == "advantage_pairs" else 2) for c in critic]
+    critic_means = [_seed_mean_cell(records, c, 1 if c in COUNTS else 2) for c in critic]
     lines.append(_row(["mean ± std", *summary, *critic_means, ""]))
     lines += ["", *targets(run, means, records)]
     return atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
@@ -185,7 +188,8 @@ def critic_lines(records: list[dict[str, Any]]) -> list[str]:
                 f"{sum(r['advantage_pairs'] for r in records)} pairs where they differ): corr(ΔQ, ΔḠ) "
                 f"{paired['advantage_corr'][0]:.2f} against a ceiling of {paired['advantage_ceiling'][0]:.2f} (the "
                 f"noise of the paired branches); ΔQ has the sign of ΔḠ in {100 * paired['advantage_sign'][0]:.0f} % of "
-                "the pairs"
+                f"the pairs whose returns differ ({sum(r['advantage_ties'] for r in records)} pairs returned the same in "
+                "every branch)"
                 + (
                     f" (means over the {paired['advantage_corr'][1]} of {n} seeds with such pairs)"
                     if paired["advantage_corr"][1] < n
