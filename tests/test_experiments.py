@@ -717,6 +717,9 @@ def test_diagnose_cli_trains_on_n_envs(tmp_path, capsys):
     assert figures["episodes"] == 1 and figures["branch_states"] == 4  # EPT's 100 steps, every 25th branched
     assert "branched episodes: 100%" in capsys.readouterr().err
     assert len(figures["state_points"]) == 4 and (tmp_path / "diagnose_EPT-v0.png").stat().st_size > 0  # its plot
+    command = 'python -m sb3_taskalloc.experiments diagnose --env EPT --steps 40 --seed 0 --algo-kwargs \'{"n_envs": 2,'
+    assert figures["command"].startswith(command) and figures["command"].endswith("--branches 2 --branch-stride 25")
+    assert (tmp_path / "diagnose_EPT-v0.md").read_text().endswith(f"Command: `{figures['command']}`\n")
     with pytest.raises(SystemExit):
         main([*args, "--branches", "1"])  # no spread to measure with one rollout
 

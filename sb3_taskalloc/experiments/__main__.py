@@ -4,6 +4,7 @@ what a model's critic and actor are doing."""
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -255,9 +256,15 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
         model = TwoStageSAC("TAMPolicy", env, seed=args.seed, device="cpu", **kwargs)
         if args.steps:
             model.learn(args.steps, progress_bar=True)
+    source = f"--model {args.model}" if args.model else f"--steps {args.steps} --seed {args.seed}"
+    if args.algo_kwargs and not args.model:
+        source += f" --algo-kwargs '{json.dumps(args.algo_kwargs)}'"
+    command = f"python -m sb3_taskalloc.experiments diagnose --env {args.env} {source} --episodes {args.episodes}"
+    command += f" --branches {args.branches} --branch-stride {args.branch_stride}"
     path = write(
         diagnose(model, env_id, args.episodes, branches=args.branches, branch_stride=args.branch_stride, progress=True),
         args.out,
+        command,
     )
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}")

@@ -278,11 +278,15 @@ def diagnose(
     )
 
 
-def write(diagnosis: Diagnosis, out: str | Path) -> Path:
+def write(diagnosis: Diagnosis, out: str | Path, command: str | None = None) -> Path:
     """``<out>/diagnose_<env>.json`` and ``.md``, and ``.png`` where states were branched (the critic against the
-    expected return, of states and of decision pairs: :func:`.plots.plot_critic`); :return: the Markdown path."""
+    expected return, of states and of decision pairs: :func:`.plots.plot_critic`); :return: the Markdown path.
+
+    :param command: the command that measured it, written into both files
+    """
     stem = Path(out) / f"diagnose_{diagnosis.env.split('/')[-1]}"
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(asdict(diagnosis), indent=2) + "\n")
+    record = asdict(diagnosis) | ({"command": command} if command else {})
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(record, indent=2) + "\n")
     if diagnosis.state_points:
         from sb3_taskalloc.experiments.plots import plot_critic
 
@@ -294,7 +298,8 @@ def write(diagnosis: Diagnosis, out: str | Path) -> Path:
             title=f"{d.env}: the stage-1 critic against the expected return Ḡ of {len(d.state_points)} branched states",
             labels=(f"corr {d.q_corr_expected:.2f}, scale {d.q_scale_expected:.2f}", _pair_label(d)),
         )
-    return atomic_write_text(stem.with_suffix(".md"), diagnosis.table() + "\n")
+    text = diagnosis.table() + (f"\n\nCommand: `{command}`" if command else "")
+    return atomic_write_text(stem.with_suffix(".md"), text + "\n")
 
 
 def _pair_label(d: Diagnosis) -> str:
