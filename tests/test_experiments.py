@@ -962,11 +962,14 @@ def test_learning_experiment_replicates_on_later_seeds(tmp_path):
     assert set(records[0]["eval_seeds"] + records[1]["eval_seeds"]).isdisjoint(earlier)
     assert "--first-seed" not in learn.LearnRun("Almighty", 2).command()
     # A seed whose sampled decisions never differed has no paired-critic figures: the means are over the other seeds.
-    figures = {"advantage_pairs": 4, "advantage_corr": 0.5, "advantage_ceiling": 0.9, "advantage_sign": 0.75}
-    none = {"advantage_pairs": 0, **dict.fromkeys(["advantage_corr", "advantage_ceiling", "advantage_sign"], float("nan"))}
+    figures = {"advantage_pairs": 5, "advantage_ties": 1, "advantage_corr": 0.5, "advantage_ceiling": 0.9}
+    figures["advantage_sign"] = 0.75
+    none = {"advantage_pairs": 0, "advantage_ties": 0}
+    none |= dict.fromkeys(["advantage_corr", "advantage_ceiling", "advantage_sign"], float("nan"))
     text = run.write([{**records[0], **figures}, {**records[1], **none}]).read_text()
-    assert "corr(ΔQ, ΔḠ) 0.50 against a ceiling of 0.90" in text and "75 % of the pairs (means over the 1 of 2 seeds" in text
-    assert "| 2.0 | 0.50 (1 of 2 seeds) | 0.90 (1 of 2 seeds) | 0.75 (1 of 2 seeds) |" in text  # pairs: 4 and 0
+    assert "corr(ΔQ, ΔḠ) 0.50 against a ceiling of 0.90" in text
+    assert "75 % of the pairs whose returns differ (1 of the pairs returned the same in every branch) (means over" in text
+    assert "| 2.5 | 0.5 | 0.50 (1 of 2 seeds) | 0.90 (1 of 2 seeds) | 0.75 (1 of 2 seeds) |" in text  # pairs: 5 and 0
     assert "nan" not in text.split("| mean ± std |")[1].split("\n")[0]
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="first_seed must be an integer ≥ 0"):

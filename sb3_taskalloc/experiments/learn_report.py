@@ -188,8 +188,8 @@ def critic_lines(records: list[dict[str, Any]]) -> list[str]:
                 f"{sum(r['advantage_pairs'] for r in records)} pairs where they differ): corr(ΔQ, ΔḠ) "
                 f"{paired['advantage_corr'][0]:.2f} against a ceiling of {paired['advantage_ceiling'][0]:.2f} (the "
                 f"noise of the paired branches); ΔQ has the sign of ΔḠ in {100 * paired['advantage_sign'][0]:.0f} % of "
-                f"the pairs whose returns differ ({sum(r['advantage_ties'] for r in records)} pairs returned the same in "
-                "every branch)"
+                f"the pairs whose returns differ ({sum(r['advantage_ties'] for r in records)} of the pairs returned the "
+                "same in every branch)"
                 + (
                     f" (means over the {paired['advantage_corr'][1]} of {n} seeds with such pairs)"
                     if paired["advantage_corr"][1] < n
