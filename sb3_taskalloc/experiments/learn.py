@@ -161,8 +161,9 @@ class LearnRun:
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
         seeds = eval_seeds(seed, self.eval_episodes)
-        self._say(f"seed {seed} ({seed - self.first_seed + 1} of {self.seeds}): training")
         found = self._finished_without_dagger(seed)
+        phase = "training" if found is None else "DAgger after its finished training"
+        self._say(f"seed {seed} ({seed - self.first_seed + 1} of {self.seeds}): {phase}")
         model, record, curve = found if found is not None else self._train(seed, seeds)
         if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
             self._evaluate_best(model, curve, record, path)
