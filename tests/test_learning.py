@@ -5,13 +5,11 @@ selection without pre-assignment in slot order (``preassign=False, task_order="s
 its single-skill tasks, decoded first, spend the almighty entity, and the all-skill task is then covered by eight
 specialists (return 28). Measured at the defaults: pre-assignment 35 in 5 of 5 seeds at 400, 500, 600, 800 steps and
 the zoo block's 1,200, in 4 of 5 at 350 (seed 4: 33) and in none at 300; sequence 28 in 3 of 3 seeds at 350, 400, 500
-and 600 steps (2 of 3 at 800, 35 in seed 1). The check runs at 400, the shortest budget measured at 5 of 5, and asks 4.
+and 600 steps (2 of 3 at 800, 35 in seed 1). The check runs at 400, the shortest budget measured at 5 of 5, and asks 4;
+the sequence variant on one seed.
 """
 
 from __future__ import annotations
-
-import multiprocessing as mp
-import os
 
 import pytest
 
@@ -20,20 +18,15 @@ import pytest
 BUDGET = {"total_timesteps": 400, "learning_rate": 1e-3, "learning_starts": 200}
 SEEDS = range(5)
 #: The sequence variant decodes its tasks one after the other (about 2× slower per step): to fit CI it is checked on
-#: 2 seeds, at the same budget (it fails if both reach the optimum).
-SEQUENCE_SEEDS, SEQUENCE_STEPS = range(2), BUDGET["total_timesteps"]
+#: one seed, at the same budget (it fails if that seed reaches the optimum).
+SEQUENCE_SEEDS, SEQUENCE_STEPS = range(1), BUDGET["total_timesteps"]
 
 
-def train_and_evaluate(args: tuple[int, dict, int]) -> float:
-    seed, policy_kwargs, steps = args
-    os.environ["OMP_NUM_THREADS"] = "1"
+def train_and_evaluate(seed: int, policy_kwargs: dict, steps: int) -> float:
     import gymnasium as gym
-    import torch as th
 
-    import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
 
-    th.set_num_threads(1)
     model = TwoStageSAC(
         "TAMPolicy",
         "TaskAlloc/Almighty-v0",
@@ -53,13 +46,13 @@ def train_and_evaluate(args: tuple[int, dict, int]) -> float:
 @pytest.mark.slow
 def test_almighty_preassignment_reaches_optimum_and_sequence_gets_stuck():
     sequence = {"preassign": False, "task_order": "sequential"}
-    jobs = [(seed, {}, BUDGET["total_timesteps"]) for seed in SEEDS]
-    jobs += [(seed, sequence, SEQUENCE_STEPS) for seed in SEQUENCE_SEEDS]
-    # spawn: a forked child cannot use CUDA once this process has (pytest-xdist runs other tests in this process first)
-    with mp.get_context("spawn").Pool(2) as pool:
-        flat = pool.map(train_and_evaluate, jobs, chunksize=1)
-    returns = {"pre-assign": flat[: len(SEEDS)], "sequence": flat[len(SEEDS) :]}
+    # In this process, one training after the other: under pytest-xdist the other worker runs the rest of the suite
+    # beside it (a pool of its own would start two more interpreters on CI's two cores).
+    returns = {
+        "pre-assign": [train_and_evaluate(seed, {}, BUDGET["total_timesteps"]) for seed in SEEDS],
+        "sequence": [train_and_evaluate(seed, sequence, SEQUENCE_STEPS) for seed in SEQUENCE_SEEDS],
+    }
     print(f"\nAlmighty: pre-assign after {BUDGET['total_timesteps']} steps, sequence after {SEQUENCE_STEPS}: {returns}")
     optimal = {name: sum(r == pytest.approx(35.0) for r in values) for name, values in returns.items()}
     assert optimal["pre-assign"] >= 4, returns
-    assert optimal["sequence"] <= len(SEQUENCE_SEEDS) // 2, returns  # does not reach the optimum in most seeds
+    assert optimal["sequence"] == 0, returns  # does not reach the optimum
