@@ -1,6 +1,8 @@
 """Test configuration: one thread everywhere (6× faster on small nets than oversubscribed BLAS on CI's 2 cores)."""
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
@@ -13,9 +15,17 @@ import torch
 import envs  # noqa: F401  (registers the TaskAlloc/* ids)
 
 torch.set_num_threads(1)
+# SB3 makes a log folder for every learn() without a logger of its own (``/tmp/SB3-<time>``, empty unless a format
+# writes to it): the suite's thousands go to one folder, shared by the xdist workers and subprocesses, removed at the end.
+_LOGS = None if "SB3_LOGDIR" in os.environ else os.environ.setdefault("SB3_LOGDIR", tempfile.mkdtemp(prefix="sb3-tests-"))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The ``slow`` learning checks run first: under pytest-xdist (``make test``) the other workers run the rest of the
     suite beside them, instead of one worker running a several-minute check at the end while the others wait."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if _LOGS is not None:
+        shutil.rmtree(_LOGS, ignore_errors=True)

@@ -42,11 +42,11 @@ def test_learn_smoke(env_id, ablation):
     assert action.shape == (1, *model.action_space.shape)
 
 
-def test_logger_keys():
+def test_logger_keys(tmp_path):
     model = TwoStageSAC(
         "TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=4, batch_size=4, seed=0, policy_kwargs={"hidden_dim": 8}
     )
-    model.set_logger(configure(None, ["csv"]))
+    model.set_logger(configure(str(tmp_path), ["csv"]))
     seen: set[str] = set()
     original = model.logger.record
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
 
@@ -134,7 +134,7 @@ class BiddingWorkers:
             seed=seed,
             device=device,
         )
-        self.ddpg.set_logger(configure(None, [""]))
+        self.ddpg.set_logger(Logger(None, []))  # silent, and no log folder (SB3's configure() makes one in /tmp)
         self._set_initial_bid()
 
     def _set_initial_bid(self) -> None:
