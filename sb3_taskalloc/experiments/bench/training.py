@@ -96,7 +96,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
 
     devices = bench_devices(args)
     rows = []
-    steps = 20 if args.quick else 100
+    steps = 8 if args.quick else 100
     blocks = 1 if args.quick else 3  # the median of three blocks damps the run-to-run spread of one block
     for device in devices:
         for env_id in ("TaskAlloc/RBF-v0", "TaskAlloc/EPT-v0", "TaskAlloc/MT-v0", "TaskAlloc/Almighty-v0"):
@@ -122,7 +122,7 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
 def bench_zoo(args: argparse.Namespace) -> list[dict[str, Any]]:
     """What users train: each env's recommended configuration (:func:`zoo_block_row`, ``--algo-kwargs`` over the
     block) on RBF and MT, as the train benchmark's zoo-block row times it."""
-    steps, blocks = (20, 1) if args.quick else (100, 3)
+    steps, blocks = (8, 1) if args.quick else (100, 3)
     env_ids = ("TaskAlloc/RBF-v0", "TaskAlloc/MT-v0")  # not `envs`: zoo_block_row imports the package of that name
     return [
         zoo_block_row(env_id, device, steps, blocks, dagger=not args.quick, overrides=args.algo_kwargs)
