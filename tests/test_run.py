@@ -212,13 +212,15 @@ def test_demo_dagger_follows_the_zoo_block():
     assert dagger_schedule("TaskAlloc/EPT-v0", 1, 1) == {"imitation": "set", "iterations": 1, "episodes": 1}
 
 
-def test_demo_writes_its_outputs(tmp_path, capsys):
+def test_demo_writes_its_outputs(tmp_path, capsys, monkeypatch):
     """``make demo``'s entry point, on a short budget: it compares with the baselines and writes what it promises, and
-    trains with the env's policy settings of its zoo block (MT's margin rule and two rounds)."""
+    trains with the env's policy settings of its zoo block (MT's margin rule and two rounds). MT's episodes are cut to
+    30 steps (registered: 150): the demo plays about ten of them."""
     import json
 
     from sb3_taskalloc.experiments import demo
 
+    monkeypatch.setattr(gym.spec("TaskAlloc/MT-v0"), "max_episode_steps", 30)
     demo.main(
         ["--env", "MT", "--steps", "40", "--n-envs", "2", "--eval-episodes", "1", "--eval-every", "20",
          "--dagger-iterations", "1", "--dagger-episodes", "1", "--out", str(tmp_path)]
