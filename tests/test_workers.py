@@ -175,6 +175,18 @@ def test_cli_with_a_frozen_greedy_manager(tmp_path):
     assert (tmp_path / "incomes.png").stat().st_size > 0 and (tmp_path / "workers.zip").exists()
 
 
+def test_workers_make_no_log_folder(tmp_path, monkeypatch):
+    """The workers' DDPG logs nothing, and makes no folder for it (SB3's ``configure()`` makes ``SB3-<time>`` in the
+    temporary folder at every call)."""
+    import tempfile
+
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    workers = BiddingWorkers(3, 3.0, seed=0, learning_starts=5, batch_size=4)
+    co_train("TaskAlloc/RBF-v0", 20, GreedyAllocator(), workers, seed=0)
+    assert workers.ddpg._n_updates > 0 and not list(tmp_path.glob("SB3-*"))
+
+
 def test_frozen_manager_does_not_learn():
     market = make_market("TaskAlloc/RBF-v0", seed=0)
     manager = TwoStageSAC("TAMPolicy", market, seed=0, learning_starts=5, batch_size=8, policy_kwargs={"hidden_dim": 16})
