@@ -318,7 +318,7 @@ def test_milp_objective_is_the_env_reward(env_id):
 
 
 @pytest.mark.parametrize("env_id", ["TaskAlloc/RBF-v0", "TaskAlloc/MT-v0", "TaskAlloc/EPT-v0"])
-@pytest.mark.parametrize("make_agent", [GreedyAllocator, lambda: RandomAllocator(0), lambda: MILPAllocator(time_limit=2)])
+@pytest.mark.parametrize("make_agent", [GreedyAllocator, lambda: RandomAllocator(0), lambda: MILPAllocator(time_limit=0.5)])
 def test_baselines_respect_masks(env_id, make_agent):
     env = gym.make(env_id)
     agent = make_agent()
