@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 from torch.nn import functional as F
 
 from sb3_taskalloc import TwoStageSAC
@@ -315,7 +315,7 @@ def test_learning_rate_schedule_sets_every_optimizer():
         "TAMPolicy", "TaskAlloc/Almighty-v0", learning_rate=lambda progress: 1e-3 * progress,
         select_kwargs={"ent_coef": "auto"}, seed=0,
     )  # fmt: skip
-    model.set_logger(configure(None, []))
+    model.set_logger(Logger(None, []))  # silent, no log folder
     model._current_progress_remaining = 0.25
     model.train(gradient_steps=0)
     found = optimizers(model)
