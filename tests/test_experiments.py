@@ -609,15 +609,18 @@ def test_advantage_figures_separate_the_critic_from_the_noise():
     assert np.isnan(advantage_figures(delta[:3], np.zeros((3, 4)))["advantage_sign"])
 
 
-def test_branch_calibration_branches_the_env_randomness():
+def test_branch_calibration_branches_the_env_randomness(monkeypatch):
     """Copies of a state draw their own arrivals (seeded per copy, so they are reproducible), and the calibration
-    branches every ``stride``-th state of each episode."""
+    branches every ``stride``-th state of each episode. On 60-step episodes, with γ = 0.7 (branches of 13 steps, where
+    γ = 0.9 sums 44): the same states branched, in about half the time."""
     import torch as th
 
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.calibration import _branch_returns, branch_calibration
 
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16})
+    monkeypatch.setattr(gym.spec("TaskAlloc/RBF-v0"), "max_episode_steps", 60)
+    short = {"seed": 0, "device": "cpu", "gamma": 0.7}
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", **short, policy_kwargs={"hidden_dim": 16})
     env = gym.make("TaskAlloc/RBF-v0")
     obs, _ = env.reset(seed=3)
     action = model.predict(obs, deterministic=True)[0]
@@ -626,7 +629,7 @@ def test_branch_calibration_branches_the_env_randomness():
     for _ in range(2):
         th.manual_seed(0)
         with th.no_grad():
-            runs.append(_branch_returns(model, env, action, branches=3, horizon=30, key=7))
+            runs.append(_branch_returns(model, env, action, branches=3, horizon=15, key=7))
     np.testing.assert_array_equal(runs[0], runs[1])
     assert len(set(runs[0].round(9))) > 1  # the copies' futures differ
     stepped, reference = env.step(action)[0], untouched.step(action)[0]  # the snapshot itself was neither stepped nor reseeded
@@ -634,7 +637,7 @@ def test_branch_calibration_branches_the_env_randomness():
     figures = branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
     assert figures["branch_states"] == 2 and 0 <= figures["return_ceiling"] <= 1
     # A uniform actor: the second sampled decision differs from the executed one at every branched state.
-    uniform = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, device="cpu", policy_kwargs={"heuristic_init": False})
+    uniform = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", **short, policy_kwargs={"heuristic_init": False})
     th.manual_seed(1)
     paired = branch_calibration(uniform, "TaskAlloc/RBF-v0", [10_000], branches=2, stride=50)
     assert paired["advantage_pairs"] == paired["branch_states"] == 2 and 0 <= paired["advantage_sign"] <= 1
@@ -649,15 +652,18 @@ def test_branch_calibration_branches_the_env_randomness():
         branch_calibration(model, "TaskAlloc/RBF-v0", [10_000], branches=1)
 
 
-def test_diagnose_reads_the_critic_against_the_reward_it_learns():
+def test_diagnose_reads_the_critic_against_the_reward_it_learns(monkeypatch):
     """A critic trained on the commitment reward is compared with returns of that reward, not of the env reward: on the
-    same sampled episodes (diagnose seeds its sampling) only the critic's returns change."""
+    same sampled episodes (diagnose seeds its sampling) only the critic's returns change. On 30-step episodes with
+    γ = 0.7 (an eighth of the decisions at 100 steps and γ = 0.9)."""
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.diagnose import diagnose
 
+    monkeypatch.setattr(gym.spec("TaskAlloc/RBF-v0"), "max_episode_steps", 30)
     model = TwoStageSAC(
-        "TAMPolicy", "TaskAlloc/RBF-v0", reward_timing="completion", seed=0, device="cpu", policy_kwargs={"hidden_dim": 16}
-    )
+        "TAMPolicy", "TaskAlloc/RBF-v0", reward_timing="completion", seed=0, device="cpu", gamma=0.7,
+        policy_kwargs={"hidden_dim": 16},
+    )  # fmt: skip
     paid = diagnose(model, "TaskAlloc/RBF-v0", episodes=1, branches=0)
     model.reward_timing = "commitment"
     credited = diagnose(model, "TaskAlloc/RBF-v0", episodes=1, branches=0)
