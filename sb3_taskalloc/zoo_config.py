@@ -4,6 +4,8 @@ experiments and :meth:`TwoStageSAC.from_zoo <sb3_taskalloc.TwoStageSAC.from_zoo>
 
 from __future__ import annotations
 
+import copy
+import functools
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -24,19 +26,26 @@ DAGGER_CALLBACK = "sb3_taskalloc.two_stage_sac.callbacks.SelectDAggerCallback"
 ZOO_ONLY = ("policy", "n_timesteps", "callback")
 
 
-def _zoo_block(env_id: str, path: str | Path | None) -> tuple[Path, dict[str, Any]]:
-    """The config file read and ``env_id``'s block in it; a clear error when either is missing (a silent ``{}`` would
-    train another configuration)."""
+@functools.lru_cache(maxsize=16)
+def _parsed(text: str) -> dict[str, Any]:
+    """A config file's blocks, parsed once per text (a parse takes about 20 ms, and an experiment reads its env's block
+    for every model it builds)."""
     import yaml
 
+    return yaml.safe_load(text) or {}
+
+
+def _zoo_block(env_id: str, path: str | Path | None) -> tuple[Path, dict[str, Any]]:
+    """The config file read and ``env_id``'s block in it (a copy the caller may change); a clear error when either is
+    missing (a silent ``{}`` would train another configuration)."""
     path = Path(path) if path else config_path("two_stage_sac.yml")
     if not path.is_file():
         raise FileNotFoundError(f"no zoo config at {path}")
-    blocks = yaml.safe_load(path.read_text()) or {}
+    blocks = _parsed(path.read_text())
     if env_id not in blocks:
         known = sorted(k for k in blocks if k != "default")
         raise ValueError(f"{path} has no block for {env_id!r}; it has {known}")
-    return path, dict(blocks[env_id])
+    return path, copy.deepcopy(blocks[env_id])
 
 
 def zoo_hyperparameters(env_id: str, path: str | Path | None = None) -> dict[str, Any]:

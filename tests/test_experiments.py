@@ -291,6 +291,8 @@ def test_algo_kwargs_override_the_zoo_block_and_merge_its_policy_kwargs(tmp_path
     runs = [LearnRun("RBF", 1, 0, 1, 1000, kwargs, out=str(tmp_path)) for kwargs in ({}, {"policy_kwargs": {"rounds": 1}})]
     assert runs[0].hyperparameters == block and runs[1].hyperparameters["policy_kwargs"]["rounds"] == 1
     assert runs[0].key != runs[1].key
+    rounds, block["policy_kwargs"]["rounds"] = block["policy_kwargs"]["rounds"], 99  # a caller's change stays its own
+    assert zoo_hyperparameters("TaskAlloc/RBF-v0")["policy_kwargs"]["rounds"] == rounds
     # A callback entry (rl-zoo3's key) is not passed on to TwoStageSAC: the DAgger callback is zoo_dagger's, with the
     # callback's defaults filled in; any other callback, or keywords the callback refuses, are named.
     from sb3_taskalloc.zoo_config import DAGGER_CALLBACK, zoo_dagger
