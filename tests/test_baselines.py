@@ -122,15 +122,16 @@ def test_milp_reference_allocates_the_same_under_load():
     import threading
 
     env = gym.make("TaskAlloc/RBF-v0")
-    obs, _ = env.reset(seed=10_001)
+    obs, _ = env.reset(seed=10_002)
     states, greedy = [], GreedyAllocator()
-    for _ in range(4):
-        states.append(obs)
+    for step in range(4):  # the states after the first: the limit binds there at 0.3–0.6 s a solve (the first: 4–10 s)
+        if step:
+            states.append(obs)
         obs, *_ = env.step(greedy.predict(obs)[0])
     reference = MILPAllocator.reference(node_limit=2)
     idle = [reference.allocate(state) for state in states]
     summary = reference.gap_summary()
-    assert summary["solves"] == 4 and summary["stopped"] > 0 and summary["max_gap"] > 0  # the limit binds
+    assert summary["solves"] == 3 and summary["stopped"] > 0 and summary["max_gap"] > 0  # the limit binds
     stop = threading.Event()
 
     def busy() -> None:
