@@ -5,8 +5,8 @@ selection without pre-assignment in slot order (``preassign=False, task_order="s
 its single-skill tasks, decoded first, spend the almighty entity, and the all-skill task is then covered by eight
 specialists (return 28). Measured at the defaults: pre-assignment 35 in 5 of 5 seeds at 400, 500, 600, 800 steps and
 the zoo block's 1,200, in 4 of 5 at 350 (seed 4: 33) and in none at 300; sequence 28 in 3 of 3 seeds at 350, 400, 500
-and 600 steps (2 of 3 at 800, 35 in seed 1). The check runs at 400, the shortest budget measured at 5 of 5, and asks 4;
-the sequence variant on one seed.
+and 600 steps (2 of 3 at 800, 35 in seed 1). The check runs at 400, the shortest budget measured at 5 of 5, and asks 4
+(it stops training seeds once the verdict is settled); the sequence variant on one seed.
 """
 
 from __future__ import annotations
@@ -43,16 +43,29 @@ def train_and_evaluate(seed: int, policy_kwargs: dict, steps: int) -> float:
     return float(reward)
 
 
+#: Pre-assign seeds that must reach the optimum.
+REQUIRED = 4
+
+
+def reach_optimum(seeds: range, required: int) -> tuple[bool, list[float]]:
+    """Whether at least ``required`` of ``seeds`` reach the optimum, and the returns trained for it: the seeds in order,
+    stopping once the rest cannot change the verdict (four optimal seeds of five leave the fifth untrained)."""
+    returns: list[float] = []
+    for done, seed in enumerate(seeds, start=1):
+        returns.append(train_and_evaluate(seed, {}, BUDGET["total_timesteps"]))
+        optimal = sum(r == pytest.approx(35.0) for r in returns)
+        if optimal >= required or optimal + len(seeds) - done < required:
+            break
+    return optimal >= required, returns
+
+
 @pytest.mark.slow
 def test_almighty_preassignment_reaches_optimum_and_sequence_gets_stuck():
     sequence = {"preassign": False, "task_order": "sequential"}
     # In this process, one training after the other: under pytest-xdist the other worker runs the rest of the suite
     # beside it (a pool of its own would start two more interpreters on CI's two cores).
-    returns = {
-        "pre-assign": [train_and_evaluate(seed, {}, BUDGET["total_timesteps"]) for seed in SEEDS],
-        "sequence": [train_and_evaluate(seed, sequence, SEQUENCE_STEPS) for seed in SEQUENCE_SEEDS],
-    }
-    print(f"\nAlmighty: pre-assign after {BUDGET['total_timesteps']} steps, sequence after {SEQUENCE_STEPS}: {returns}")
-    optimal = {name: sum(r == pytest.approx(35.0) for r in values) for name, values in returns.items()}
-    assert optimal["pre-assign"] >= 4, returns
-    assert optimal["sequence"] == 0, returns  # does not reach the optimum
+    reached, returns = reach_optimum(SEEDS, REQUIRED)
+    stuck = [train_and_evaluate(seed, sequence, SEQUENCE_STEPS) for seed in SEQUENCE_SEEDS]
+    print(f"\nAlmighty after {BUDGET['total_timesteps']} steps: pre-assign {returns}, sequence {stuck}")
+    assert reached, f"fewer than {REQUIRED} of {len(SEEDS)} seeds reach 35: {returns}"
+    assert not any(r == pytest.approx(35.0) for r in stuck), stuck  # does not reach the optimum
