@@ -25,7 +25,7 @@ def episode_views(model: TwoStageSAC, env_id: str, n: int, seed: int = 5) -> lis
     """The first ``n`` states of an episode the model's argmax plays (:func:`.episode_states`), parsed on the model's
     device."""
     with th.no_grad():
-        return [model.policy.parse(model.policy.obs_to_tensor(obs)[0]) for obs in episode_states(model, env_id, [seed])[:n]]
+        return [model.policy.parse(model.policy.obs_to_tensor(obs)[0]) for obs in episode_states(model, env_id, [seed], n)]
 
 
 def same(a: Decision, b: Decision) -> bool:
@@ -39,8 +39,9 @@ def test_a_fixed_step_decision_is_the_eager_one_where_its_flag_is_clear(env_id):
     clear. A sample's first round is the eager sample's from the same seed (later rounds draw after a different number
     of picks). The whole fixed-step decision traces as one graph with no break (what a CUDA graph records)."""
     model = TwoStageSAC.from_zoo(env_id, seed=0, n_envs=1, device="cpu")
-    policy, flags = model.policy, []
-    for view in episode_views(model, env_id, 12):
+    policy, flags, views = model.policy, [], episode_views(model, env_id, 12)
+    assert len(views) == 12  # the episode's first 12 states: it stops there
+    for view in views:
         with th.inference_mode():
             eager = policy.decide(view, deterministic=True)
             fixed, unfinished = decide_fixed(policy, view, True, 32)

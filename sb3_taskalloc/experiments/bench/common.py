@@ -70,16 +70,21 @@ def scaled_rbf(n_entities: int, n_tasks: int) -> Any:
     return RBFEnv(entity_rows=[i % 100 for i in range(n_entities)], max_tasks=n_tasks, arrival_count=(n_tasks, n_tasks))
 
 
-def episode_states(agent: Any, env_id: str, seeds: list[int]) -> list[dict[str, np.ndarray]]:
-    """The observations of deterministic episodes of ``agent`` on ``env_id`` (the states a deployed policy meets)."""
+def episode_states(agent: Any, env_id: str, seeds: list[int], limit: int | None = None) -> list[dict[str, np.ndarray]]:
+    """The observations of deterministic episodes of ``agent`` on ``env_id`` (the states a deployed policy meets).
+
+    :param limit: the first ``limit`` states only (None: every state of every episode)
+    """
     import gymnasium as gym
 
-    states = []
+    states: list[dict[str, np.ndarray]] = []
     for seed in seeds:
         env = gym.make(env_id)
         obs, _ = env.reset(seed=seed)
         done = False
         while not done:
+            if len(states) == limit:
+                return states
             states.append(obs)
             obs, _, terminated, truncated, _ = env.step(agent.predict(obs, deterministic=True)[0])
             done = terminated or truncated
