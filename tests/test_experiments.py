@@ -774,7 +774,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch,
 
     from sb3_taskalloc.experiments import evaluation, learn
 
-    kwargs = {"n_envs": 1, "learning_starts": 5, "batch_size": 8, "policy_kwargs": {"hidden_dim": 16}}  # n_envs: the zoo's 8
+    # n_envs: the zoo's 8; γ = 0.7: the diagnosis sums 13 steps past each episode's end (44 at 0.9, on 12-step episodes)
+    kwargs = {"n_envs": 1, "learning_starts": 5, "batch_size": 8, "gamma": 0.7, "policy_kwargs": {"hidden_dim": 16}}
     run = learn.LearnRun(
         "EPT",
         seeds=2,
