@@ -7,7 +7,6 @@ import csv
 import dataclasses
 import json
 import math
-import multiprocessing as mp
 import os
 import re
 from pathlib import Path
@@ -92,12 +91,14 @@ def short_episodes() -> Any:
         yield
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def smoke_tables(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("results")
-    # spawn: a forked child cannot use CUDA once this process has (pytest-xdist runs other tests in this process first)
-    with mp.get_context("spawn").Pool(2) as pool:
-        pool.map(run_smoke, [(env, str(out)) for env in ENVS], chunksize=1)
+    # In this process, one env after the other: under pytest-xdist the other worker runs the rest of the suite beside
+    # it (a pool of two spawned interpreters cost about 12 s of CPU more on CI's two cores). Session-scoped: computed
+    # once per worker, whatever other modules' tests the worker runs between the tests that read it.
+    for env in ENVS:
+        run_smoke((env, str(out)))
     return out
 
 
