@@ -21,8 +21,9 @@ _LOGS = None if "SB3_LOGDIR" in os.environ else os.environ.setdefault("SB3_LOGDI
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The ``slow`` learning checks run first: under pytest-xdist (``make test``) the other workers run the rest of the
-    suite beside them, instead of one worker running a several-minute check at the end while the others wait."""
+    """The ``slow`` learning checks run first where the rest of the suite runs too (a plain ``pytest -n 2``): the other
+    workers run the rest beside them, instead of one worker running a several-minute check at the end while the others
+    wait. ``make test`` leaves them out; ``make test-slow`` runs them alone."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 

@@ -39,15 +39,9 @@ def record_distill_select(monkeypatch: pytest.MonkeyPatch) -> list[tuple[Any, di
     return calls
 
 
-def run_smoke(args: tuple[str, str]) -> str:
-    env, out = args
-    os.environ["OMP_NUM_THREADS"] = "1"
-    import torch as th
-
-    import envs  # noqa: F401
-
-    th.set_num_threads(1)
-    return str(TableRun(env, 1, "smoke", out, progress=False).run())
+def run_smoke(env: str, out: Path) -> Path:
+    """``env``'s smoke table under ``out`` (the cells already there are read back, not computed again)."""
+    return TableRun(env, 1, "smoke", out, progress=False).run()
 
 
 def read_table(path: Path) -> list[list[str]]:
@@ -98,7 +92,7 @@ def smoke_tables(tmp_path_factory) -> Path:
     # it (a pool of two spawned interpreters cost about 12 s of CPU more on CI's two cores). Session-scoped: computed
     # once per worker, whatever other modules' tests the worker runs between the tests that read it.
     for env in ENVS:
-        run_smoke((env, str(out)))
+        run_smoke(env, out)
     return out
 
 
@@ -144,12 +138,12 @@ def test_resume_computes_only_missing_cells(smoke_tables):
     cells = smoke_tables / "EPT" / "cells.csv"
     before = cells.read_text().splitlines()
     table_before = (smoke_tables / "EPT" / "table.md").read_text()
-    run_smoke(("EPT", str(smoke_tables)))  # nothing missing: nothing recomputed
+    run_smoke("EPT", smoke_tables)  # nothing missing: nothing recomputed
     assert cells.read_text().splitlines() == before
     assert (smoke_tables / "EPT" / "table.md").read_text() == table_before
     kept = [line for line in before if not line.startswith("Ours,few-shot (task)")]
     cells.write_text("\n".join(kept) + "\n")  # as if interrupted before that cell
-    run_smoke(("EPT", str(smoke_tables)))
+    run_smoke("EPT", smoke_tables)
     after = cells.read_text().splitlines()
     assert after[: len(kept)] == kept and len(after) == len(kept) + 1 and after[-1].startswith("Ours,few-shot (task),0,")
 
@@ -169,7 +163,7 @@ def test_few_shot_cell_is_computed_again_identically(smoke_tables):
     import torch as th
 
     th.manual_seed(12345)  # another global random state than the fixture's process had
-    run_smoke(("EPT", str(smoke_tables)))
+    run_smoke("EPT", smoke_tables)
     again = next(x for x in cells.read_text().splitlines() if x.startswith("Ours,few-shot (entity),0,"))
     assert again.split(",")[3] == line.split(",")[3]
     second = TwoStageSAC.load(model).policy.state_dict()
@@ -204,7 +198,7 @@ def test_resume_after_a_row_cut_mid_line(smoke_tables):
     cells = smoke_tables / "EPT" / "cells.csv"
     lines = cells.read_text().splitlines()
     cells.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][: len(lines[-1]) // 2])  # no trailing newline
-    run_smoke(("EPT", str(smoke_tables)))
+    run_smoke("EPT", smoke_tables)
     after = cells.read_text().splitlines()
     assert after[:-1] == lines[:-1] and after[-1].split(",")[:3] == lines[-1].split(",")[:3]
 
