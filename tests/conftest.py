@@ -3,6 +3,7 @@
 import os
 import shutil
 import tempfile
+from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
@@ -25,6 +26,28 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     workers run the rest beside them, instead of one worker running a several-minute check at the end while the others
     wait. ``make test`` leaves them out; ``make test-slow`` runs them alone."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
+#: Test modules whose tests share an expensive session fixture: each one's tests go to a single pytest-xdist worker, so
+#: that its fixture is computed once per run (under plain load balancing each worker that ran one of them computed it).
+ONE_WORKER_MODULES = ("test_smoke_tables.py",)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist load`` (what ``-n`` implies), except that each module of :data:`ONE_WORKER_MODULES` is one unit of work.
+    xdist's own ``--dist loadgroup`` does this by ``xdist_group`` marks, but its marks do not reach the scheduler under
+    pytest 9 (it renames a node id attribute that pytest 9 no longer reads)."""
+    if config.getvalue("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Scheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return module if module.rsplit("/", 1)[-1] in ONE_WORKER_MODULES else nodeid
+
+    return Scheduling(config, log)
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

@@ -112,7 +112,7 @@ BUDGETS: dict[str, Budget] = {
         1,
         {"population": 4, "budget": 20, "horizon": 3, "tail": 2},
         sac={
-            "learning_starts": 10,
+            "learning_starts": 4,
             "batch_size": 8,
             "buffer_size": 1_000,  # a model is built for every cell it evaluates
             "select_kwargs": {"batch_size": 4},
@@ -120,7 +120,7 @@ BUDGETS: dict[str, Budget] = {
         },
         ppo={"n_steps": 16, "batch_size": 8, "n_epochs": 1},
         milp={"time_limit": 0.1, "node_limit": 5},  # HiGHS's root node alone takes seconds on RBF
-        max_episode_steps=8,
+        max_episode_steps=4,
     ),
 }
 
