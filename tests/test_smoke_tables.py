@@ -1,6 +1,6 @@
 """The experiment table's smoke runs: every env's table well formed, resumed after an interruption cell by cell.
 
-The tables are computed once (a session fixture, about 40 s) and read by every test here; ``tests/conftest.py``
+The tables are computed once (a session fixture, about 30 s) and read by every test here; ``tests/conftest.py``
 sends this module's tests to one pytest-xdist worker, so that no second worker computes them again.
 """
 
@@ -25,8 +25,9 @@ def run_smoke(env: str, out: Path) -> Path:
     return TableRun(env, 1, "smoke", out, progress=False).run()
 
 
-def read_table(path: Path) -> list[list[str]]:
-    lines = [line for line in path.read_text().splitlines() if line.startswith("| ")]
+def read_table(text: str) -> list[list[str]]:
+    """The rows of a markdown table's ``text``, cell by cell."""
+    lines = [line for line in text.splitlines() if line.startswith("| ")]
     return [[c.strip() for c in line.strip("|").split("|")] for line in lines]
 
 
@@ -43,7 +44,8 @@ def smoke_tables(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("env", ENVS)
 def test_smoke_table_is_well_formed(smoke_tables, env):
-    table = read_table(smoke_tables / env / "table.md")
+    text = (smoke_tables / env / "table.md").read_text()
+    table = read_table(text)
     assert table[0] == ["setting", *METHODS]
     rows = [r[0] for r in table[1:]]
     assert rows == (["train"] if env == "Almighty" else ROWS)
@@ -65,18 +67,17 @@ def test_smoke_table_is_well_formed(smoke_tables, env):
         scratch = {r["method"]: r for r in records if r["row"].startswith("from scratch")}
         assert scratch["Ours"]["mean"] != "n/a" and scratch["Greedy"]["std"] == "static"
         assert scratch["W/o TAM"]["std"] == "scratch"
-        text = (smoke_tables / env / "table.md").read_text()
         assert re.search(r"Ours zero-shot / from scratch on the entity shift: (-?\d+\.\d+|n/a)", text), text
         assert len(list((smoke_tables / env / "models").glob("ours_s0_from_scratch*entity_*.zip"))) == 1
         assert (smoke_tables / env / "curves.png").stat().st_size > 0
     goal = r"Ours / best planner \((GA|PSO|SOS)\) on the training env: (-?\d+\.\d+|n/a)"
-    assert re.search(goal, (smoke_tables / env / "table.md").read_text())
+    assert re.search(goal, text)
     # The per-step MILP's gap, filed per cell and pooled under the table.
     gaps = json.loads((smoke_tables / env / "milp_gaps.json").read_text())
     assert any(key.startswith("train|0|") for key in gaps)  # row, seed and the cell's configuration
     assert all(g["solves"] > 0 and 0 <= g["stopped"] <= 1 for g in gaps.values())
     line = r"MILP: HiGHS with \{.*'node_limit': 5\} per solve; \d+% of \d+ solves stopped short of proven optimality"
-    assert re.search(line, (smoke_tables / env / "table.md").read_text())
+    assert re.search(line, text)
 
 
 def test_resume_computes_only_missing_cells(smoke_tables):
