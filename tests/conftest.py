@@ -30,7 +30,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 #: Test modules whose tests share an expensive session fixture: each one's tests go to a single pytest-xdist worker, so
 #: that its fixture is computed once per run (under plain load balancing each worker that ran one of them computed it).
-ONE_WORKER_MODULES = ("test_smoke_tables.py",)
+ONE_WORKER_MODULES = ("test_smoke_tables.py", "test_tuning_postgres.py")
 
 
 @pytest.hookimpl(optionalhook=True)

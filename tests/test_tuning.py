@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -196,57 +195,6 @@ def test_killed_worker_loses_no_completed_trial(tmp_path):
     assert study.trials[killed[0].number].state == TrialState.FAIL
     retried = [t for t in study.trials if t.user_attrs.get("retry_of") == killed[0].number]
     assert len(retried) == 1 and retried[0].params == killed[0].params and "re-queued" in out
-
-
-@pytest.fixture(scope="module")
-def postgres_url():
-    """A throw-away PostgreSQL server (Debian's ``postgresql`` package), run as the ``postgres`` user on a Unix socket."""
-    import glob
-    import pwd
-    import shutil
-
-    bins = sorted(glob.glob("/usr/lib/postgresql/*/bin"))
-    if not bins:
-        pytest.skip("PostgreSQL server binaries not installed (Debian package postgresql; .ci/run installs it)")
-    pytest.importorskip("psycopg", reason='the PostgreSQL driver is in the "tests" extra (psycopg[binary])')
-    try:
-        user = pwd.getpwnam("postgres")
-    except KeyError:
-        pytest.skip("no postgres system user to run the server as")
-    folder = Path(tempfile.mkdtemp(prefix="taskalloc-pg-"))  # not under pytest's root-only folder: the server reads it
-    data = folder / "data"
-    os.chown(folder, user.pw_uid, user.pw_gid)
-
-    def as_postgres(*cmd: str) -> None:
-        runner = [] if os.getuid() == user.pw_uid else ["runuser", "-u", "postgres", "--"]
-        subprocess.run([*runner, *cmd], check=True, capture_output=True, timeout=120)
-
-    as_postgres(f"{bins[-1]}/initdb", "-D", str(data), "-A", "trust", "-U", "postgres")
-    port = "54329"
-    opts = f"-c listen_addresses='' -k {folder} -p {port}"
-    as_postgres(f"{bins[-1]}/pg_ctl", "-D", str(data), "-o", opts, "-w", "-l", str(folder / "log"), "start")
-    try:
-        yield f"postgresql+psycopg://postgres@/postgres?host={folder}&port={port}"
-    finally:
-        as_postgres(f"{bins[-1]}/pg_ctl", "-D", str(data), "-m", "immediate", "stop")
-        shutil.rmtree(folder, ignore_errors=True)
-
-
-def test_two_workers_share_a_postgresql_study(tmp_path, postgres_url):
-    env = child_env()
-    args = [a if a != str(tmp_path / "s.log") else postgres_url for a in worker_args(tmp_path, 4)]
-    workers = [
-        subprocess.Popen([sys.executable, "-m", "tuning.study", *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.STDOUT, text=True)
-        for _ in range(2)
-    ]  # fmt: skip
-    for w in workers:
-        out, _ = w.communicate(timeout=600)
-        assert w.returncode == 0, out[-3000:]
-    study = optuna.load_study(study_name="s", storage=postgres_url)
-    finished = study.get_trials(states=runner.FINISHED)
-    assert len(finished) == 4 and len({tuple(sorted(t.params.items())) for t in finished}) == 4
-    assert isinstance(runner.make_storage(postgres_url, "s"), optuna.storages.RDBStorage)
 
 
 def test_torn_journal_is_repaired_on_resume(tmp_path, capsys):

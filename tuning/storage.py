@@ -3,10 +3,12 @@ URL with heartbeats."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import optuna
@@ -94,7 +96,7 @@ def make_storage(
 
     for attempt in range(5):
         try:
-            with warnings.catch_warnings():  # heartbeats are an "experimental" argument of Optuna
+            with warnings.catch_warnings(), schema_lock(url):  # heartbeats are an "experimental" argument of Optuna
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                 return optuna.storages.RDBStorage(
                     url,
@@ -102,9 +104,44 @@ def make_storage(
                     grace_period=grace_period,
                     heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=2),
                 )
-        except sqlalchemy.exc.IntegrityError:  # workers starting together race to create the schema: the loser retries
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.OperationalError, sqlalchemy.exc.ProgrammingError) as error:
+            # Workers starting together on a database without PostgreSQL's advisory locks race to create the schema:
+            # the loser's CREATE fails ("already exists", a unique violation) and it retries, finding the tables made.
+            if attempt == 4 or not (isinstance(error, sqlalchemy.exc.IntegrityError) or "already exists" in str(error)):
+                raise
             time.sleep(0.5 * (attempt + 1))
-    raise RuntimeError(f"could not open the study storage {url} (schema creation kept failing)")
+    raise AssertionError("unreachable")  # the last attempt returns or raises
+
+
+@contextlib.contextmanager
+def schema_lock(url: str) -> Iterator[None]:
+    """Hold a PostgreSQL session advisory lock while the storage opens, so that workers starting together create
+    Optuna's tables and stamp its schema version one at a time; nothing is held for other databases.
+
+    Optuna's table creation and Alembic's version stamp check whether a table exists, then create it: two workers on an
+    empty database both pass the check and the second's ``CREATE TABLE alembic_version`` fails (``DuplicateTable``).
+
+    :param url: the study's SQLAlchemy URL
+    """
+    import sqlalchemy
+
+    engine = sqlalchemy.create_engine(url)
+    try:
+        if engine.dialect.name != "postgresql":
+            yield
+            return
+        with engine.connect() as connection:
+            connection.execute(sqlalchemy.text("SELECT pg_advisory_lock(:key)"), {"key": SCHEMA_LOCK_KEY})
+            try:
+                yield
+            finally:
+                connection.execute(sqlalchemy.text("SELECT pg_advisory_unlock(:key)"), {"key": SCHEMA_LOCK_KEY})
+    finally:
+        engine.dispose()
+
+
+#: The advisory lock's key: any 64-bit number the study's database uses for nothing else (ASCII "optunaSt").
+SCHEMA_LOCK_KEY = int.from_bytes(b"optunaSt", "big") >> 1
 
 
 def check_storage_url(url: str | None) -> None:
