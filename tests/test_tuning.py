@@ -253,6 +253,32 @@ def test_unknown_journal_op_code_and_bad_storage_urls_are_named(tmp_path):
     assert not Path("sqlite:").exists()
 
 
+def test_an_rdb_storage_retries_only_the_schema_race(tmp_path, monkeypatch):
+    """Two workers opening an empty database together race to create Optuna's tables: the loser's ``already exists``
+    (or unique violation) is retried and the tables the winner made are used; any other database error is raised at
+    once, not hidden behind retries."""
+    import sqlalchemy.exc
+
+    from tuning import storage
+
+    opened = storage.optuna.storages.RDBStorage
+    errors = [sqlalchemy.exc.OperationalError("CREATE TABLE studies", {}, Exception("table studies already exists"))]
+
+    def racing(*args: Any, **kwargs: Any) -> optuna.storages.RDBStorage:
+        if errors:
+            raise errors.pop()
+        return opened(*args, **kwargs)
+
+    monkeypatch.setattr(storage.optuna.storages, "RDBStorage", racing)
+    monkeypatch.setattr(storage.time, "sleep", lambda seconds: None)
+    url = f"sqlite:///{tmp_path / 's.db'}"
+    assert isinstance(storage.make_storage(url, "s"), opened) and not errors
+    errors.append(sqlalchemy.exc.OperationalError("SELECT 1", {}, Exception("unable to open database file")))
+    with pytest.raises(sqlalchemy.exc.OperationalError, match="unable to open"):
+        storage.make_storage(url, "s")
+    assert not errors
+
+
 def test_resuming_with_another_env_is_refused(tmp_path):
     runner.main(worker_args(tmp_path, 1))
     study = load(tmp_path)
