@@ -14,8 +14,9 @@ Storage:
   A last record cut mid-line (a crash while writing) is moved aside to ``<journal>.torn-<time>`` before anything is
   appended; a journal damaged elsewhere is refused with the line that is wrong.
 - ``postgresql://user:password@host/db`` (or any SQLAlchemy URL): Optuna's RDB storage with its own heartbeats.
-  Workers on many machines share the study; a trial whose worker stops sending heartbeats is failed after the grace
-  period and retried (``RetryHeartbeatStaleTrialCallback``).
+  Workers on many machines share the study, and may all start at once on an empty database (on PostgreSQL they create
+  Optuna's tables one at a time under an advisory lock); a trial whose worker stops sending heartbeats is failed after
+  the grace period and retried (``RetryHeartbeatStaleTrialCallback``).
 
 The study records its env, env keywords, trial budget and search space; resuming it with other ones is refused (their
 trials would be mixed). When a worker finishes it writes ``<study-name>/`` next to the journal file (under ``--out``
