@@ -140,7 +140,8 @@ def schema_lock(url: str) -> Iterator[None]:
         engine.dispose()
 
 
-#: The advisory lock's key: any 64-bit number the study's database uses for nothing else (ASCII "optunaSt").
+#: The advisory lock's key: any number the study's database uses for nothing else (ASCII "optunaSt", halved to fit a signed
+#: 64-bit integer).
 SCHEMA_LOCK_KEY = int.from_bytes(b"optunaSt", "big") >> 1
 
 
