@@ -125,11 +125,11 @@ def schema_lock(url: str) -> Iterator[None]:
     """
     import sqlalchemy
 
+    if sqlalchemy.engine.make_url(url).get_backend_name() != "postgresql":
+        yield
+        return
     engine = sqlalchemy.create_engine(url)
     try:
-        if engine.dialect.name != "postgresql":
-            yield
-            return
         with engine.connect() as connection:
             connection.execute(sqlalchemy.text("SELECT pg_advisory_lock(:key)"), {"key": SCHEMA_LOCK_KEY})
             try:
