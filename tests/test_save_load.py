@@ -279,3 +279,18 @@ def test_bad_observations_to_predict_are_named():
         model.predict({**obs, "foo": np.zeros(3)})
     with pytest.raises(ValueError, match=r"missing \['pair_cost'\]"):
         model.predict({k: v for k, v in obs.items() if k != "pair_cost"})
+
+
+def test_an_observation_of_another_size_names_the_sizes_and_the_remedy():
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, policy_kwargs=SMALL)
+    shifted = gym.make("TaskAlloc/RBF-EntityShift-v0")
+    obs, _ = shifted.reset(seed=0)
+    n, m = len(obs["entity_mask"]), len(obs["task_mask"])
+    N, M = (model.observation_space[key].shape[0] for key in ("entity_mask", "task_mask"))
+    assert n != N
+    with pytest.raises(ValueError, match=rf"has {n} entities and {m} tasks, the model's space {N} and {M}.*set_env"):
+        model.predict(obs)
+    with pytest.raises(ValueError, match=rf"has {n} entities"):  # a batch of them is named alike
+        model.predict({k: np.stack([v, v]) for k, v in obs.items()})
+    model.set_env(shifted)  # the remedy the message names
+    assert model.predict(obs, deterministic=True)[0].shape == (n,)

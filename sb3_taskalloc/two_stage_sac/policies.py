@@ -15,7 +15,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_taskalloc.common.policies import PreAssignActor, SelectCritic, Selector, TwinCritic
-from sb3_taskalloc.common.spaces import OBS_KEYS, check_spaces
+from sb3_taskalloc.common.spaces import check_observation, check_spaces
 from sb3_taskalloc.common.torch_layers import (
     PAIR_FEATURE_NAMES,
     UNIT_COST,
@@ -360,18 +360,8 @@ class TAMPolicy(BasePolicy):
     # ------------------------------------------------------------------ acting
 
     def obs_to_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[PyTorchObs, bool]:
-        """SB3's conversion, after checking what a user hands to ``predict``: a dict with this space's keys and finite
-        values (NaN would give a normal-looking action)."""
-        if not isinstance(observation, dict):
-            raise ValueError(f"TAMPolicy expects a TaskAlloc observation dict, got {type(observation).__name__}")
-        expected = set(self.observation_space.spaces)  # type: ignore[attr-defined]
-        if set(observation) != expected:
-            missing, extra = sorted(expected - set(observation)), sorted(set(observation) - expected)
-            raise ValueError(f"the observation's keys do not match the model's space: missing {missing}, unexpected {extra}")
-        for key in OBS_KEYS:
-            value = np.asarray(observation[key])
-            if value.dtype.kind == "f" and not np.isfinite(value).all():
-                raise ValueError(f"observation[{key!r}] contains NaN or infinite values")
+        """SB3's conversion, after checking what a user hands to ``predict`` (:func:`~.spaces.check_observation`)."""
+        check_observation(observation, self.observation_space)  # type: ignore[arg-type]
         return super().obs_to_tensor(observation)
 
     def parse(self, obs: PyTorchObs) -> ObsView:
