@@ -292,5 +292,7 @@ def test_an_observation_of_another_size_names_the_sizes_and_the_remedy():
         model.predict(obs)
     with pytest.raises(ValueError, match=rf"has {n} entities"):  # a batch of them is named alike
         model.predict({k: np.stack([v, v]) for k, v in obs.items()})
+    with pytest.raises(ValueError, match=r"disagree on its size: 10 entities in entity_mask"):  # malformed, not resized
+        model.predict({**obs, "entity_mask": obs["entity_mask"][:10]})
     model.set_env(shifted)  # the remedy the message names
     assert model.predict(obs, deterministic=True)[0].shape == (n,)

@@ -48,6 +48,11 @@ def check_observation(observation: object, observation_space: spaces.Dict) -> No
     # The policy is size-agnostic, but SB3's predict checks shapes against the space: name the sizes and the remedy.
     n, m = (np.shape(observation[key])[-1] if np.ndim(observation[key]) else 0 for key in ("entity_mask", "task_mask"))
     N, M = observation_space["entity_mask"].shape[-1], observation_space["task_mask"].shape[-1]  # type: ignore[index]
+    if np.shape(observation["pair_cost"])[-2:] != (n, m):
+        raise ValueError(
+            f"the observation's arrays disagree on its size: {n} entities in entity_mask, {m} tasks in task_mask, "
+            f"pair_cost of shape {np.shape(observation['pair_cost'])}"
+        )
     if (n, m) != (N, M):
         raise ValueError(
             f"the observation has {n} entities and {m} tasks, the model's space {N} and {M}: the policy runs on any "
