@@ -360,7 +360,8 @@ class TAMPolicy(BasePolicy):
     # ------------------------------------------------------------------ acting
 
     def obs_to_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[PyTorchObs, bool]:
-        """SB3's conversion, after checking what a user hands to ``predict`` (:func:`~.spaces.check_observation`)."""
+        """SB3's conversion, after checking what a user hands to ``predict``
+        (:func:`~sb3_taskalloc.common.spaces.check_observation`)."""
         check_observation(observation, self.observation_space)  # type: ignore[arg-type]
         return super().obs_to_tensor(observation)
 
