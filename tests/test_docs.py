@@ -50,3 +50,41 @@ def test_no_two_paths_of_a_folder_differ_only_in_case():
             if other != name:
                 clashes.append(f"{Path(folder).relative_to(ROOT) / other} ~ {name}")
     assert not clashes, clashes
+
+
+def _anchors(doc: Path) -> set[str]:
+    """The anchors GitHub gives ``doc``'s headings: lower case, every character but letters, digits, spaces, hyphens
+    and underscores dropped, spaces as hyphens, and a repeated anchor numbered (-1, -2, …). Fenced code is skipped."""
+    anchors: set[str] = set()
+    fenced = False
+    for line in doc.read_text(encoding="utf-8").splitlines():
+        fenced ^= line.startswith("```")
+        heading = re.match(r"#{1,6} (.*)", line)
+        if fenced or not heading:
+            continue
+        slug = "".join(c for c in heading.group(1).strip().lower() if c.isalnum() or c in " -_").replace(" ", "-")
+        anchor, n = slug, 0
+        while anchor in anchors:
+            n += 1
+            anchor = f"{slug}-{n}"
+        anchors.add(anchor)
+    return anchors
+
+
+def test_the_documents_section_links_name_headings_that_exist():
+    """A link to a section (``#anchor``, or ``file.md#anchor``) names a heading of that document: a heading retitled
+    without its links leaves them at the top of the page."""
+    checked, broken = 0, []
+    for doc in _markdown_files():
+        for target in LINK.findall(doc.read_text(encoding="utf-8")):
+            path, _, anchor = target.partition("#")
+            if not anchor or target.startswith(("http://", "https://")):
+                continue
+            page = doc if not path else doc.parent / path
+            if page.suffix != ".md" or not page.is_file():
+                continue
+            checked += 1
+            if anchor not in _anchors(page):
+                broken.append(f"{doc.relative_to(ROOT)}: {target}")
+    assert checked > 10, checked  # the README's and the docs' section links are found, so the test reads something
+    assert not broken, broken
