@@ -3,6 +3,7 @@ case-insensitive file system (macOS and Windows by default)."""
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 from pathlib import Path
@@ -52,9 +53,11 @@ def test_no_two_paths_of_a_folder_differ_only_in_case():
     assert not clashes, clashes
 
 
-def _anchors(doc: Path) -> set[str]:
+@functools.cache
+def _anchors(doc: Path) -> frozenset[str]:
     """The anchors GitHub gives ``doc``'s headings: lower case, every character but letters, digits, spaces, hyphens
-    and underscores dropped, spaces as hyphens, and a repeated anchor numbered (-1, -2, …). Fenced code is skipped."""
+    and underscores dropped, spaces as hyphens, and a repeated anchor numbered (-1, -2, …). Fenced code is skipped.
+    Read once per document: most section links point into docs/learning.md."""
     anchors: set[str] = set()
     fenced = False
     for line in doc.read_text(encoding="utf-8").splitlines():
@@ -68,7 +71,7 @@ def _anchors(doc: Path) -> set[str]:
             n += 1
             anchor = f"{slug}-{n}"
         anchors.add(anchor)
-    return anchors
+    return frozenset(anchors)
 
 
 def test_the_documents_section_links_name_headings_that_exist():
