@@ -142,7 +142,7 @@ def from_zoo(cls: Any, env_id: str, seed: int | None = None, **overrides: Any) -
     ``overrides`` on top (the settings mappings merge key by key), on ``n_envs`` copies of the env, with the block's
     budget as ``learn()``'s default and its DAgger callback run when each ``learn`` ends (:attr:`zoo_callbacks`).
 
-    :param env_id: a registered ``TaskAlloc`` id (``import envs`` registers them)
+    :param env_id: a ``TaskAlloc`` id (importing ``sb3_taskalloc`` registers them)
     :param seed: the model's seed (and the envs')
     :param overrides: TwoStageSAC keywords over the block's, ``n_envs`` and ``n_timesteps`` included
     """

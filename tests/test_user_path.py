@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import subprocess
+import sys
 import warnings
 
 import gymnasium as gym
@@ -427,3 +429,17 @@ def test_table_recomputes_a_model_whose_weights_are_damaged(tmp_path, capsys):
     assert run._load_saved(METHODS["Ours"], path) is None
     assert not path.exists() and len(list(tmp_path.glob("model.broken-*.zip"))) == 1
     assert "could not be loaded" in capsys.readouterr().out
+
+
+def test_the_advertised_call_takes_an_env_id_without_importing_envs():
+    """``TwoStageSAC("TAMPolicy", "TaskAlloc/MT-v0")`` in a fresh interpreter that never imported ``envs``: importing
+    sb3_taskalloc registers the ids, where gymnasium alone would answer "Namespace TaskAlloc not found"."""
+    code = (
+        "import sys\n"
+        "from sb3_taskalloc import TwoStageSAC\n"
+        "model = TwoStageSAC('TAMPolicy', 'TaskAlloc/MT-v0', seed=0, device='cpu')\n"
+        "print(model.env.num_envs, 'envs' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["1", "True"]

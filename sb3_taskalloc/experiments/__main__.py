@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import envs  # registers the TaskAlloc ids
+import envs
 from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, env_name, yaml_mapping
 
 #: Every command's ``--help`` shows the defaults.

@@ -152,7 +152,6 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--conf-file {args.conf_file} does not exist")
     conf_file = Path(args.conf_file) if args.conf_file else DEFAULT_CONF
     out = writable_folder(args.out)  # before training: an unwritable folder must not cost a run
-    import envs  # noqa: F401  (registers the TaskAlloc ids)
     from sb3_taskalloc.baselines import GreedyAllocator
     from sb3_taskalloc.two_stage_sac import TwoStageSAC
 

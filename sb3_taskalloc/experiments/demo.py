@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    import envs  # registers the TaskAlloc ids
+    import envs
     from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
 
     th.set_num_threads(args.threads)

@@ -96,8 +96,6 @@ def one_thread(parent: int) -> None:
 
     import torch as th
 
-    import envs  # noqa: F401
-
     th.set_num_threads(1)
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
 

@@ -111,7 +111,7 @@ def distill_select(
         ``entity_value``); or a decoder with a ``costed`` view. The pointer still decodes on its own costs, so it
         learns the value-aware teams and needs no values at decision time
     :param seed: seed of the rollouts' env (None: as it comes); use seeds disjoint from the evaluation episodes
-    :param progress_bar: show the rollout episodes with tqdm
+    :param progress_bar: show the rollout episodes with tqdm, the iteration beside them
     :param callback: called with each iteration's figures after its fit (an evaluation, a checkpoint); ``False``
         stops DAgger there, as a callback's ``False`` stops ``learn``
     :return: per iteration: the rollouts' mean return and env steps, the rounds met and the tasks labelled, the
@@ -133,8 +133,9 @@ def distill_select(
     labels: list[_CoverLabel] = []
     history: list[dict[str, float]] = []
     obs = vec_env.reset()
-    with tqdm(total=iterations * episodes, desc="select-stage DAgger", disable=not progress_bar) as bar:
+    with tqdm(total=iterations * episodes, desc="select-stage DAgger", unit="episode", disable=not progress_bar) as bar:
         for it in range(iterations):
+            bar.set_postfix_str(f"iteration {it + 1}/{iterations}")
             obs, stats = _label_rollouts(model, vec_env, obs, episodes, labels, bar.update, costed)
             stats["loss"] = _fit_labels(model, labels, optimizer, epochs, batch_size, rng, imitation == "set")
             history.append({"iteration": float(it + 1), **stats})

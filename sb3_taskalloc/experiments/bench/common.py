@@ -109,7 +109,6 @@ def rbf_model(args: argparse.Namespace) -> tuple[Any, str]:
     ``--train-steps`` at the defaults. :return: it and its source, in words"""
     import gymnasium as gym
 
-    import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
 
     if args.model:

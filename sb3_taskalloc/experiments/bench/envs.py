@@ -62,7 +62,6 @@ def bench_baselines(args: argparse.Namespace) -> list[dict[str, Any]]:
     import gymnasium as gym
     import torch as th
 
-    import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.baselines import (
         GeneticAlgorithm,

@@ -91,7 +91,6 @@ def bench_train(args: argparse.Namespace) -> list[dict[str, Any]]:
     import gymnasium as gym
     from stable_baselines3.common.env_util import make_vec_env
 
-    import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
 
     devices = bench_devices(args)
@@ -138,7 +137,6 @@ def zoo_block_row(
     included, ``overrides`` over it) timed like the defaults, with a 64-step warm-up; with ``dagger``, one iteration of
     the block's DAgger phase timed apart and the block's whole schedule (its budget, then its DAgger iterations)
     extrapolated."""
-    import envs  # noqa: F401  (registers the TaskAlloc ids)
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.zoo_config import zoo_dagger
 
@@ -202,7 +200,6 @@ def bench_learn(args: argparse.Namespace) -> list[dict[str, Any]]:
     :data:`LEARN_TARGET` × the same policy untrained on them, or ``--learn-steps`` env steps. It is evaluated every
     ``--eval-every`` env steps; the evaluations are not counted in the time. Then the block's DAgger phase runs, timed
     and evaluated on the same episodes apart. One row per training seed and device."""
-    import envs  # noqa: F401
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments.budgets import DAGGER_BUDGET
     from sb3_taskalloc.experiments.evaluation import episode_returns, eval_seeds
