@@ -399,6 +399,11 @@ def test_bad_policy_settings_are_named(policy_kwargs, match):
         TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", policy_kwargs=policy_kwargs)
 
 
+def test_an_sb3_policy_name_is_answered_with_the_one_this_algorithm_takes():
+    with pytest.raises(ValueError, match="TwoStageSAC has no policy 'MlpPolicy': it takes TAMPolicy"):
+        TwoStageSAC("MlpPolicy", "TaskAlloc/Almighty-v0")
+
+
 def test_a_kill_during_a_save_leaves_no_lasting_temporary_file(tmp_path):
     import os
     import time

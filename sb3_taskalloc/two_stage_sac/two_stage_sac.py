@@ -223,6 +223,14 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
         self.select_critic = self.policy.select_critic
         self.select_critic_target = self.policy.select_critic_target
 
+    def _get_policy_from_name(self, policy_name: str) -> type[BasePolicy]:
+        if policy_name not in self.policy_aliases:  # SB3's own message names neither the cause nor the choice
+            raise ValueError(
+                f"TwoStageSAC has no policy {policy_name!r}: it takes {', '.join(self.policy_aliases)} (or a subclass), "
+                "whose attention reads the TaskAlloc Dict observation at any number of entities and tasks"
+            )
+        return super()._get_policy_from_name(policy_name)
+
     def _learned_rewards(self, reward: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
         """The reward the stage-1 critics learn: the env's, or its commitment reward with ``reward_timing="commitment"``
         (implementation detail 2)."""
