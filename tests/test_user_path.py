@@ -109,6 +109,32 @@ def test_dagger_is_skipped_when_training_ended_early():
         SelectDAggerCallback(after_interrupt="no")  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("progress_bar", [True, False])
+def test_learn_progress_bar_closes_before_dagger_and_dagger_shows_its_own(monkeypatch, progress_bar):
+    """``learn(progress_bar=True)`` with a DAgger callback: SB3's bar is closed when the steps end, before DAgger's
+    minutes begin (SB3 alone closes it after every callback), and DAgger shows its own bar; without it, neither."""
+    from stable_baselines3.common.callbacks import ProgressBarCallback
+
+    events: list[tuple[str, bool | None]] = []
+    real_end, real_distill = ProgressBarCallback._on_training_end, TwoStageSAC.distill_select
+
+    def bar_closed(self):
+        events.append(("SB3 bar closed", None))
+        real_end(self)
+
+    def distill(self, env, **kwargs):
+        events.append(("DAgger", kwargs["progress_bar"]))
+        return real_distill(self, env, **kwargs)
+
+    monkeypatch.setattr(ProgressBarCallback, "_on_training_end", bar_closed)
+    monkeypatch.setattr(TwoStageSAC, "distill_select", distill)
+    model, later = _rbf_model(), _StopAt(10**6)
+    model.zoo_callbacks = [SelectDAggerCallback(iterations=1, episodes=1, epochs=1)]
+    model.learn(16, callback=later, progress_bar=progress_bar)
+    assert events == ([("SB3 bar closed", None), ("DAgger", True)] if progress_bar else [("DAgger", False)])
+    assert later.n_calls == 16  # the caller's callback still ran beside the zoo's
+
+
 def test_ctrl_c_during_dagger_keeps_the_iterations_done(monkeypatch):
     """Ctrl-C during DAgger stops it; the callback returns normally (so the caller saves the model) with the
     iterations done."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 from gymnasium.envs.registration import EnvSpec
@@ -39,7 +39,8 @@ class SelectDAggerCallback(BaseCallback):
 
     The rollouts run on a fresh env made from the training env's spec (its id, keywords and time limit, without its
     wrappers; one copy, so they do not disturb the training envs), and the next ``learn`` call of the model resets its
-    training envs before it collects again.
+    training envs before it collects again. With ``learn(progress_bar=True)`` SB3's bar closes when the steps end and
+    DAgger shows its own.
 
     :param iterations: rollout-label-fit iterations
     :param episodes: episodes rolled out per iteration
@@ -56,6 +57,9 @@ class SelectDAggerCallback(BaseCallback):
         during DAgger stops it after the iteration in progress; the model keeps the iterations done
     :param verbose: 1 prints each iteration's figures
     """
+
+    #: ``learn`` recognises it by this, to close SB3's progress bar before DAgger and show DAgger's instead.
+    distills_select: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -86,6 +90,7 @@ class SelectDAggerCallback(BaseCallback):
         }
         self.seed = seed
         self.history: list[dict[str, float]] = []
+        self.progress_bar = False  # set by each ``learn`` call from its own ``progress_bar``
         self._distilled = False  # whether this learn() call's DAgger has run
 
     def _init_callback(self) -> None:
@@ -125,7 +130,9 @@ class SelectDAggerCallback(BaseCallback):
         env = gym.make(dataclasses.replace(self.env_spec, additional_wrappers=()))
         self.history = []
         try:  # each iteration is recorded as it ends, so Ctrl-C keeps the ones done and lets the caller save the model
-            self.model.distill_select(env, seed=seed, callback=self.history.append, **self.kwargs)
+            self.model.distill_select(
+                env, seed=seed, callback=self.history.append, progress_bar=self.progress_bar, **self.kwargs
+            )
         except KeyboardInterrupt:
             warnings.warn(
                 f"DAgger interrupted after {len(self.history)} of {self.kwargs['iterations']} iterations; the model keeps "

@@ -5,13 +5,14 @@ runs it when ``learn`` ends.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.base_class import maybe_make_env
-from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.callbacks import ProgressBarCallback
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm.auto import tqdm
 
@@ -34,6 +35,27 @@ class _CoverLabel(NamedTuple):
     task_of: th.Tensor  # (1, N) the round's candidate sets
     rank: th.Tensor  # (1, M, N) each task's labelled team in pick order
     labelled: th.Tensor  # (1, M) tasks whose team is a label
+
+
+def learn_callbacks(zoo: Sequence[Any], callback: MaybeCallback, progress_bar: bool) -> tuple[MaybeCallback, bool]:
+    """``learn``'s callbacks: a :meth:`.TwoStageSAC.from_zoo` model's block callbacks first, then the caller's. Where one
+    runs DAgger when training ends (``distills_select``), it shows DAgger's progress when ``progress_bar`` asks, and
+    SB3's bar goes just before it: SB3 closes its own bar after every callback has ended, which would leave it at 100 %
+    through DAgger's minutes.
+
+    :return: the callbacks, and the ``progress_bar`` left for SB3's ``learn`` (False where the bar is placed here)
+    """
+    given = callback if isinstance(callback, list) else [callback] if callback is not None else []
+    callbacks = [*zoo, *given]
+    first = next((i for i, c in enumerate(callbacks) if getattr(c, "distills_select", False)), None)
+    if first is None:
+        return (callbacks if zoo else callback), progress_bar
+    for c in callbacks[first:]:
+        if getattr(c, "distills_select", False):
+            c.progress_bar = progress_bar
+    if not progress_bar:
+        return callbacks, False
+    return [*callbacks[:first], ProgressBarCallback(), *callbacks[first:]], False
 
 
 def check_distill_select(

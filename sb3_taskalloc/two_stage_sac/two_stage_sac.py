@@ -322,8 +322,7 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
         else :data:`DEFAULT_TOTAL_TIMESTEPS` = 20,000); a :meth:`from_zoo` model also runs its block's callbacks."""
         if total_timesteps is None:
             total_timesteps = self.zoo_n_timesteps or DEFAULT_TOTAL_TIMESTEPS
-        if self.zoo_callbacks:
-            callback = [*self.zoo_callbacks, *(callback if isinstance(callback, list) else [callback] if callback else [])]
+        callback, progress_bar = dagger.learn_callbacks(self.zoo_callbacks, callback, progress_bar)
         if not (isinstance(total_timesteps, int | np.integer) and total_timesteps >= 0):
             raise ValueError(f"total_timesteps must be a non-negative integer, got {total_timesteps!r}")
         end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
