@@ -109,10 +109,10 @@ def test_dagger_is_skipped_when_training_ended_early():
         SelectDAggerCallback(after_interrupt="no")  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("progress_bar", [True, False])
-def test_learn_progress_bar_closes_before_dagger_and_dagger_shows_its_own(monkeypatch, progress_bar):
-    """``learn(progress_bar=True)`` with a DAgger callback: SB3's bar is closed when the steps end, before DAgger's
-    minutes begin (SB3 alone closes it after every callback), and DAgger shows its own bar; without it, neither."""
+@pytest.mark.parametrize("asked", ["learn(progress_bar=True)", "SB3's bar in the list (rl-zoo3's -P)", "no bar"])
+def test_the_progress_bar_closes_before_dagger_and_dagger_shows_its_own(monkeypatch, asked):
+    """A DAgger callback under a progress bar: SB3's bar is closed when the steps end, before DAgger's minutes begin (SB3
+    alone closes it after every callback), and DAgger shows its own; without a bar, neither."""
     from stable_baselines3.common.callbacks import ProgressBarCallback
 
     events: list[tuple[str, bool | None]] = []
@@ -130,8 +130,9 @@ def test_learn_progress_bar_closes_before_dagger_and_dagger_shows_its_own(monkey
     monkeypatch.setattr(TwoStageSAC, "distill_select", distill)
     model, later = _rbf_model(), _StopAt(10**6)
     model.zoo_callbacks = [SelectDAggerCallback(iterations=1, episodes=1, epochs=1)]
-    model.learn(16, callback=later, progress_bar=progress_bar)
-    assert events == ([("SB3 bar closed", None), ("DAgger", True)] if progress_bar else [("DAgger", False)])
+    given: list[BaseCallback] = [later, ProgressBarCallback()] if asked.startswith("SB3") else [later]
+    model.learn(16, callback=given, progress_bar=asked.startswith("learn"))
+    assert events == ([("DAgger", False)] if asked == "no bar" else [("SB3 bar closed", None), ("DAgger", True)])
     assert later.n_calls == 16  # the caller's callback still ran beside the zoo's
 
 

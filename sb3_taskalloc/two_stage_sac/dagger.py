@@ -39,23 +39,25 @@ class _CoverLabel(NamedTuple):
 
 def learn_callbacks(zoo: Sequence[Any], callback: MaybeCallback, progress_bar: bool) -> tuple[MaybeCallback, bool]:
     """``learn``'s callbacks: a :meth:`.TwoStageSAC.from_zoo` model's block callbacks first, then the caller's. Where one
-    runs DAgger when training ends (``distills_select``), it shows DAgger's progress when ``progress_bar`` asks, and
-    SB3's bar goes just before it: SB3 closes its own bar after every callback has ended, which would leave it at 100 %
-    through DAgger's minutes.
+    runs DAgger when training ends (``distills_select``) and a progress bar is asked for (``progress_bar``, or rl-zoo3's
+    ``-P``, which adds SB3's bar to the list), DAgger shows its own and SB3's goes just before it, so that it closes
+    when the steps end: SB3 closes it after every callback has ended, which leaves it at 100 % through DAgger's minutes.
 
     :return: the callbacks, and the ``progress_bar`` left for SB3's ``learn`` (False where the bar is placed here)
     """
     given = callback if isinstance(callback, list) else [callback] if callback is not None else []
     callbacks = [*zoo, *given]
-    first = next((i for i, c in enumerate(callbacks) if getattr(c, "distills_select", False)), None)
-    if first is None:
+    if not any(getattr(c, "distills_select", False) for c in callbacks):
         return (callbacks if zoo else callback), progress_bar
-    for c in callbacks[first:]:
+    bars = [c for c in callbacks if isinstance(c, ProgressBarCallback)]
+    rest = [c for c in callbacks if not isinstance(c, ProgressBarCallback)]
+    first = next(i for i, c in enumerate(rest) if getattr(c, "distills_select", False))
+    for c in rest[first:]:
         if getattr(c, "distills_select", False):
-            c.progress_bar = progress_bar
-    if not progress_bar:
+            c.progress_bar = progress_bar or bool(bars)
+    if not (progress_bar or bars):
         return callbacks, False
-    return [*callbacks[:first], ProgressBarCallback(), *callbacks[first:]], False
+    return [*rest[:first], *(bars or [ProgressBarCallback()]), *rest[first:]], False
 
 
 def check_distill_select(
