@@ -296,3 +296,16 @@ def test_an_observation_of_another_size_names_the_sizes_and_the_remedy():
         model.predict({**obs, "entity_mask": obs["entity_mask"][:10]})
     model.set_env(shifted)  # the remedy the message names
     assert model.predict(obs, deterministic=True)[0].shape == (n,)
+
+
+def test_load_and_set_env_take_an_env_id_as_the_constructor_does(tmp_path):
+    """``TwoStageSAC.load(path, env="TaskAlloc/RBF-EntityShift-v0")`` and ``set_env(id)``: the id is made as the
+    constructor makes it, where SB3 refused a string as "not a Gymnasium environment"."""
+    TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", seed=0, policy_kwargs=SMALL).save(tmp_path / "rbf")
+    shifted_id = "TaskAlloc/RBF-EntityShift-v0"
+    obs, _ = gym.make(shifted_id).reset(seed=0)
+    loaded = TwoStageSAC.load(tmp_path / "rbf", env=shifted_id)
+    assert loaded.get_env() is not None and loaded.observation_space == gym.make(shifted_id).observation_space
+    assert loaded.predict(obs, deterministic=True)[0].shape == (len(obs["entity_mask"]),)
+    loaded.set_env("TaskAlloc/RBF-v0")
+    assert loaded.observation_space == gym.make("TaskAlloc/RBF-v0").observation_space

@@ -10,6 +10,7 @@ from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -354,10 +355,10 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
         each iteration's figures."""
         return dagger.distill_select(self, env, **kwargs)
 
-    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
-        """Attach an env. With a size-agnostic policy the env may have other entity/task counts (zero-shot transfer):
-        the spaces are adopted and the replay buffer is rebuilt for the new sizes. Feature sizes must match."""
-        env = self._wrap_env(env, self.verbose)  # type: ignore[arg-type]
+    def set_env(self, env: GymEnv | str, force_reset: bool = True) -> None:
+        """Attach an env (or an env id). With a size-agnostic policy the env may have other entity/task counts (zero-shot
+        transfer): the spaces are adopted and the replay buffer is rebuilt for the new sizes. Feature sizes must match."""
+        env = self._wrap_env(maybe_make_env(env, self.verbose), self.verbose)  # type: ignore[arg-type]
         new_obs, new_act = env.observation_space, env.action_space
         check_spaces(new_obs, new_act)
         if new_obs != self.observation_space:
@@ -382,16 +383,16 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
     def load(  # type: ignore[override]
         cls: type[SelfTwoStageSAC],
         path: Any,
-        env: GymEnv | None = None,
+        env: GymEnv | str | None = None,
         device: th.device | str = "auto",
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfTwoStageSAC:
-        """Load a model; ``env`` may have other entity/task counts when the policy is size-agnostic (see :meth:`set_env`),
-        and another number of envs (a model trained on ``n_envs`` copies loads on one env to evaluate or transfer). A
-        model saved by an earlier version loads with its settings converted (:mod:`.legacy`)."""
+        """Load a model; ``env`` (or an env id) may have other entity/task counts when the policy is size-agnostic (see
+        :meth:`set_env`) and another number of envs (a model trained on ``n_envs`` copies loads on one env to evaluate or
+        transfer). A model saved by an earlier version loads with its settings converted (:mod:`.legacy`)."""
         decoder = None
         if isinstance(path, str | pathlib.Path):
             check_saved_model(path, ("data", "policy.pth"))
@@ -408,7 +409,7 @@ class TwoStageSAC(AtomicSaveMixin, graph_step.GraphStepMixin, DecodingMixin, Off
             ) from error
         legacy.finish(model, decoder)
         if env is not None:
-            env = model._wrap_env(env, model.verbose)  # type: ignore[arg-type]
+            env = model._wrap_env(maybe_make_env(env, model.verbose), model.verbose)  # type: ignore[arg-type]
             model.n_envs = env.num_envs  # another env count is fine on load, as in SB3's ``load`` (not in ``set_env``)
             model.set_env(env, force_reset)
         return model
