@@ -128,8 +128,8 @@ def test_the_progress_bar_closes_before_dagger_and_dagger_shows_its_own(monkeypa
 
     monkeypatch.setattr(ProgressBarCallback, "_on_training_end", bar_closed)
     monkeypatch.setattr(TwoStageSAC, "distill_select", distill)
-    model, later = _rbf_model(), _StopAt(10**6)
-    model.zoo_callbacks = [SelectDAggerCallback(iterations=1, episodes=1, epochs=1)]
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=8, batch_size=8, seed=0, policy_kwargs=SMALL)
+    model.zoo_callbacks, later = [SelectDAggerCallback(iterations=1, episodes=1, epochs=1)], _StopAt(10**6)
     given: list[BaseCallback] = [later, ProgressBarCallback()] if asked.startswith("SB3") else [later]
     model.learn(16, callback=given, progress_bar=asked.startswith("learn"))
     assert events == ([("DAgger", False)] if asked == "no bar" else [("SB3 bar closed", None), ("DAgger", True)])
