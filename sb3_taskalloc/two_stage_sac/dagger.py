@@ -47,16 +47,16 @@ def learn_callbacks(zoo: Sequence[Any], callback: MaybeCallback, progress_bar: b
     """
     given = callback if isinstance(callback, list) else [callback] if callback is not None else []
     callbacks = [*zoo, *given]
-    if not any(getattr(c, "distills_select", False) for c in callbacks):
+    daggers = [c for c in callbacks if getattr(c, "distills_select", False)]
+    if not daggers:
         return (callbacks if zoo else callback), progress_bar
     bars = [c for c in callbacks if isinstance(c, ProgressBarCallback)]
-    rest = [c for c in callbacks if not isinstance(c, ProgressBarCallback)]
-    first = next(i for i, c in enumerate(rest) if getattr(c, "distills_select", False))
-    for c in rest[first:]:
-        if getattr(c, "distills_select", False):
-            c.progress_bar = progress_bar or bool(bars)
+    for c in daggers:
+        c.progress_bar = progress_bar or bool(bars)
     if not (progress_bar or bars):
         return callbacks, False
+    rest = [c for c in callbacks if not isinstance(c, ProgressBarCallback)]
+    first = rest.index(daggers[0])
     return [*rest[:first], *(bars or [ProgressBarCallback()]), *rest[first:]], False
 
 
