@@ -1,4 +1,5 @@
-"""Test configuration: one thread everywhere (6× faster on small nets than oversubscribed BLAS on CI's 2 cores)."""
+"""Test configuration: one thread everywhere (6× faster on small nets than oversubscribed BLAS on CI's 2 cores), and
+the experiment runners' fixtures for shorter runs."""
 
 import os
 import shutil
@@ -10,10 +11,12 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 # cuBLAS reads this when it starts: it lets the CUDA determinism check of test_save_load run (no effect on the CPU).
 os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
 
+import gymnasium as gym
 import pytest
 import torch
 
 import envs  # noqa: F401  (registers the TaskAlloc/* ids)
+from tests.runner_helpers import SHORT_EPT_STEPS, short_worker
 
 torch.set_num_threads(1)
 # SB3 makes a log folder for every learn() without a logger of its own (``/tmp/SB3-<time>``, empty unless a format
@@ -53,3 +56,27 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 def pytest_unconfigure(config: pytest.Config) -> None:
     if _LOGS is not None:
         shutil.rmtree(_LOGS, ignore_errors=True)
+
+
+@pytest.fixture
+def short_branching(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The learning experiment's diagnosis with 2 rollouts from every 20th state (8 from every 10th by default): the
+    same figures, from fewer branches."""
+    from functools import partial
+
+    from sb3_taskalloc.experiments import diagnose
+
+    monkeypatch.setattr(diagnose, "diagnose", partial(diagnose.diagnose, branches=2, branch_stride=20))
+
+
+@pytest.fixture
+def short_episodes() -> Any:
+    """EPT episodes of :data:`SHORT_EPT_STEPS` steps, here and in the learning experiment's worker processes: the
+    runners' plumbing (files, columns, resumption) is the same on an eighth of an episode (the report test: 127 s at
+    100 steps, 42 s at 25, 23 s at 12). A MonkeyPatch of its own, so that a test's ``monkeypatch.undo()`` keeps it."""
+    from sb3_taskalloc.experiments import learn
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gym.spec("TaskAlloc/EPT-v0"), "max_episode_steps", SHORT_EPT_STEPS)
+        patch.setattr(learn, "one_thread", short_worker)
+        yield

@@ -313,52 +313,6 @@ def test_from_zoo_is_the_recommended_configuration():
         TwoStageSAC.from_zoo("TaskAlloc/Nope-v0")
 
 
-def test_zoo_train_uses_the_shipped_config_by_default(monkeypatch):
-    """``python -m sb3_taskalloc.zoo train`` without ``--conf-file`` trains with the packaged config, not rl-zoo3's
-    folder (which knows no TaskAlloc id)."""
-    import sys
-
-    import rl_zoo3.train
-
-    from sb3_taskalloc import zoo
-    from sb3_taskalloc.zoo_config import config_path
-
-    seen: list[list[str]] = []
-    monkeypatch.setattr(rl_zoo3.train, "train", lambda: seen.append(list(sys.argv)))
-    monkeypatch.setattr(sys, "argv", ["x"])
-    zoo.main(["train", "--algo", "two_stage_sac", "--env", "TaskAlloc/RBF-v0"])
-    assert seen[0][seen[0].index("--conf-file") + 1] == str(config_path("two_stage_sac.yml"))
-    assert config_path("two_stage_sac.yml").is_file() and config_path("ddpg.yml").is_file()
-
-
-def test_zoo_train_names_a_block_rl_zoo3_cannot_train(tmp_path, monkeypatch):
-    """A block without ``policy`` or ``n_timesteps`` ended in rl-zoo3's bare ``KeyError: 'n_timesteps'``; bad YAML in a
-    traceback. Both are named before rl-zoo3 starts; ``-n`` stands in for ``n_timesteps``."""
-    import sys
-
-    import rl_zoo3.train
-
-    from sb3_taskalloc import zoo
-
-    seen: list[list[str]] = []
-    monkeypatch.setattr(rl_zoo3.train, "train", lambda: seen.append(list(sys.argv)))
-    monkeypatch.setattr(sys, "argv", ["x"])
-    conf = tmp_path / "c.yml"
-    base = ["train", "--algo", "two_stage_sac", "--env", "TaskAlloc/Almighty-v0", "--conf-file", str(conf)]
-    for text, match in [
-        ("TaskAlloc/Almighty-v0:\n  learning_rate: 0.001\n", "has no policy or n_timesteps, which rl-zoo3 needs"),
-        ("TaskAlloc/Almighty-v0:\n  policy: TAMPolicy\n", "has no n_timesteps"),
-        ("TaskAlloc/Almighty-v0: [1, 2\n", r"(?s)c\.yml is not valid YAML.*c\.yml\", line 2"),
-    ]:
-        conf.write_text(text)
-        with pytest.raises(SystemExit, match=match):
-            zoo.main(base)
-    assert not seen
-    conf.write_text("TaskAlloc/Almighty-v0:\n  policy: TAMPolicy\n")
-    zoo.main([*base, "-n", "100"])
-    assert len(seen) == 1
-
-
 def test_dagger_without_pre_assignment_is_refused_before_training(monkeypatch, capsys):
     from sb3_taskalloc.experiments import __main__ as experiments
     from sb3_taskalloc.experiments.learn import LearnRun
