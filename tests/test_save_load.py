@@ -208,7 +208,7 @@ def test_failed_save_keeps_the_previous_model(tmp_path, monkeypatch):
 def test_failed_replay_buffer_save_keeps_the_previous_buffer(tmp_path, monkeypatch):
     import pickle
 
-    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", learning_starts=5, seed=0, policy_kwargs=SMALL)
+    model = TwoStageSAC("TAMPolicy", "TaskAlloc/Almighty-v0", buffer_size=16, learning_starts=5, seed=0, policy_kwargs=SMALL)
     model.learn(5)
     model.save_replay_buffer(tmp_path / "buffer")
     before = (tmp_path / "buffer.pkl").read_bytes()
@@ -258,7 +258,8 @@ def test_broken_save_is_named(tmp_path, content):
 
 def test_replay_buffer_of_another_size_is_refused(tmp_path):
     """A buffer filled on a 100-entity env cannot be trained on by a 50-entity model: refused when loaded."""
-    big = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", learning_starts=3, seed=0, policy_kwargs=SMALL)
+    # A buffer of 16 rows: saving the default 100,000 rows of 100-robot observations took 8 of the test's 10 s.
+    big = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-v0", buffer_size=16, learning_starts=3, seed=0, policy_kwargs=SMALL)
     big.learn(3)
     big.save_replay_buffer(tmp_path / "buffer")
     small = TwoStageSAC("TAMPolicy", "TaskAlloc/RBF-EntityShift-v0", seed=0, policy_kwargs=SMALL)
