@@ -262,6 +262,8 @@ def test_learning_experiment_reports_per_seed_and_resumes(tmp_path, monkeypatch,
         assert len(record["actor_only"]) == len(record["pointer_only"]) == 2
         assert [p[0] for p in record["curve"]] == [0, 5, 10]
         assert record["MILP gap"]["solves"] > 0 and 0 <= record["MILP gap"]["max_gap"] < 1
+        assert record["machine"]["cpu_capability"] and record["machine"]["libraries"]["stable-baselines3"]
+    assert f"Measured on {data['seeds'][0]['machine']['cpu']} (" in text  # where the seeds' figures repeat
     assert (tmp_path / "EPT.png").stat().st_size > 0
     assert evaluation.eval_seeds(0, 10)[-1] < evaluation.eval_seeds(1, 10)[0]  # seeds' evaluation episodes never overlap
     check_reevaluations(run, data["seeds"], tmp_path, monkeypatch)

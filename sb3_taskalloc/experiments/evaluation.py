@@ -84,6 +84,37 @@ def decision_digest(agent: Any, env_id: str, seeds: Iterable[int] = FINGERPRINT_
     return digest.hexdigest()[:16]
 
 
+def machine() -> dict[str, Any]:
+    """The machine and libraries a figure was measured with: a seed's training repeats to the digit on one machine,
+    while the same seed measured on another machine has moved by several points (docs/learning.md, "The plain
+    constructor's first experience"), so a comparison of two records starts here. The vector instructions torch's
+    kernels use are among them, as they round batched products differently."""
+    import platform
+    from importlib import metadata
+
+    import torch as th
+
+    def version(dist: str) -> str | None:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return None
+
+    cpuinfo = Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []
+    models = [line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name")]
+    return {
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpu": models[0] if models else platform.processor() or None,
+        "cpu_capability": th.backends.cpu.get_cpu_capability(),  # the vector instructions torch's kernels use
+        "cpus": os.cpu_count(),
+        "numpy": np.__version__,
+        "torch": th.__version__,
+        "gpu": th.cuda.get_device_name() if th.cuda.is_available() else None,
+        "libraries": {dist: version(dist) for dist in ("stable-baselines3", "gymnasium", "scipy")},
+    }
+
+
 def one_thread(parent: int) -> None:
     """Worker set-up of ``LearnRun.run(jobs > 1)``: one torch thread per process, the TaskAlloc ids registered, and a
     watch that ends the worker when the process that started it is gone (:func:`exit_with_parent`).

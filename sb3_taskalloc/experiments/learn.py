@@ -200,6 +200,7 @@ class LearnRun:
             "seed": seed,
             "eval_seeds": seeds,
             "untrained": evaluation.episode_returns(model, self.env_id, seeds),
+            "machine": evaluation.machine(),  # a seed trains to the same weights only on the same CPU and libraries
         }
         curve = self._curve(seed)
         t0 = time.perf_counter()

@@ -57,6 +57,19 @@ def _row(cells: list[str]) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
+def machines(records: list[dict[str, Any]]) -> str:
+    """Where the seeds were measured, each machine once (a seed's figures repeat on one machine only; records of
+    earlier versions carry none)."""
+    seen = sorted(
+        {
+            f"{m['cpu']} ({m['cpu_capability']}), torch {m['torch']}, stable-baselines3 {m['libraries']['stable-baselines3']}"
+            for record in records
+            if (m := record.get("machine"))
+        }
+    )
+    return f" Measured on {'; '.join(seen)}." if seen else ""
+
+
 def _seed_mean_cell(records: list[dict[str, Any]], name: str, digits: int = 2) -> str:
     """:func:`seed_mean` formatted, with the number of seeds it is over when some seeds lack the figure ("—" when none
     has it)."""
@@ -103,7 +116,7 @@ def write(run: LearnRun, records: list[dict[str, Any]]) -> Path:
         + f" × {run.eval_episodes} held-out episodes"
         + (" (trained on CUDA)" if run.device == "cuda" else ""),
         "",
-        f"Command: `{run.command()}`. Curve: `{png.name}`.",
+        f"Command: `{run.command()}`. Curve: `{png.name}`." + machines(records),
         "",
         *(
             [

@@ -19,10 +19,11 @@ from pathlib import Path
 from typing import Any
 
 from sb3_taskalloc.common.utils import atomic_write_text
-from sb3_taskalloc.experiments.bench.common import BenchFn, machine
+from sb3_taskalloc.experiments.bench.common import BenchFn
 from sb3_taskalloc.experiments.bench.envs import bench_baselines, bench_envs
 from sb3_taskalloc.experiments.bench.policy import MT_DECODER, SEARCH, TEAM_SEARCH, bench_labels, bench_policy
 from sb3_taskalloc.experiments.bench.training import LEARN_TARGET, bench_learn, bench_train, bench_zoo
+from sb3_taskalloc.experiments.evaluation import machine
 
 __all__ = ["LEARN_TARGET", "MT_DECODER", "SEARCH", "TEAM_SEARCH", "main"]
 

@@ -1,10 +1,9 @@
-"""What the benchmarks share: the machine's description, devices, timing helpers and the states of seeded episodes."""
+"""What the benchmarks share: devices, timing helpers and the states of seeded episodes (the machine's description:
+:func:`sb3_taskalloc.experiments.evaluation.machine`)."""
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -16,19 +15,6 @@ if TYPE_CHECKING:
 
 
 BenchFn = Callable[[argparse.Namespace], list[dict[str, Any]]]
-
-
-def machine() -> dict[str, Any]:
-    import torch as th
-
-    return {
-        "python": platform.python_version(),
-        "machine": platform.machine(),
-        "cpus": os.cpu_count(),
-        "numpy": np.__version__,
-        "torch": th.__version__,
-        "gpu": th.cuda.get_device_name() if th.cuda.is_available() else None,
-    }
 
 
 def bench_devices(args: argparse.Namespace) -> list[str]:
