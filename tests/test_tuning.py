@@ -175,7 +175,10 @@ def test_killed_worker_loses_no_completed_trial(tmp_path):
         time.sleep(0.2)
         if not (tmp_path / "s.log").exists():
             continue
-        study = load(tmp_path)
+        try:
+            study = load(tmp_path)
+        except KeyError:  # the journal's file exists a moment before the worker's record of the study in it
+            continue
         running = study.get_trials(states=(TrialState.RUNNING,))
         # Mid-trial: the running trial has drawn all its parameters (it is training), so its retry must repeat them.
         if runner.count(study, runner.FINISHED) >= 1 and len(running) == 1 and len(running[0].params) == len(FIXED):
