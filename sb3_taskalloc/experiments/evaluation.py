@@ -85,9 +85,9 @@ def decision_digest(agent: Any, env_id: str, seeds: Iterable[int] = FINGERPRINT_
 
 
 def machine() -> dict[str, Any]:
-    """The machine and libraries a figure was measured with: a seed's training repeats to the digit on one machine,
-    while the same seed measured on another machine has moved by several points (docs/learning.md, "The plain
-    constructor's first experience"), so a comparison of two records starts here. The vector instructions torch's
+    """The machine and libraries a figure was measured with. A seed's training repeats to the digit in one venv on one
+    machine, and seeds measured on other days have moved without a cause found (docs/learning.md, "The plain
+    constructor's first experience"): a comparison of two records starts here. The vector instructions torch's
     kernels use are among them, as they round batched products differently."""
     import platform
     from importlib import metadata

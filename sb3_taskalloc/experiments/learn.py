@@ -200,7 +200,7 @@ class LearnRun:
             "seed": seed,
             "eval_seeds": seeds,
             "untrained": evaluation.episode_returns(model, self.env_id, seeds),
-            "machine": evaluation.machine(),  # a seed trains to the same weights only on the same CPU and libraries
+            "machine": evaluation.machine(),  # where a seed's figures were measured, for comparing two records
         }
         curve = self._curve(seed)
         t0 = time.perf_counter()

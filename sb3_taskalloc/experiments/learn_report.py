@@ -58,8 +58,7 @@ def _row(cells: list[str]) -> str:
 
 
 def machines(records: list[dict[str, Any]]) -> str:
-    """Where the seeds were measured, each machine once (a seed's figures repeat on one machine only; records of
-    earlier versions carry none)."""
+    """Where the seeds were measured, each machine once (records of earlier versions carry none)."""
     seen = sorted(
         {
             f"{m['cpu']} ({m['cpu_capability']}), torch {m['torch']}, stable-baselines3 {m['libraries']['stable-baselines3']}"
