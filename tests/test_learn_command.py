@@ -194,3 +194,21 @@ def test_a_sequence_setting_names_its_report_without_brackets():
     suffix, _, flags = _reevaluation_labels(None, "entity_value", {"top": 2, "theta": [-0.114, -0.041, 0.01]}, 0)
     assert suffix == "_decoder_entity_value_theta_-0.114_-0.041_0.01_top_2"
     assert """--decoder entity_value --decoder-kwargs '{"top": 2, "theta": [-0.114, -0.041, 0.01]}'""" in flags
+
+
+def test_the_report_names_each_machine_once_and_the_gpu_where_a_seed_trained_on_it():
+    from sb3_taskalloc.experiments.learn_report import machines
+
+    cpu = {
+        "cpu": "AMD EPYC",
+        "cpu_capability": "AVX2",
+        "gpu": "NVIDIA H100",
+        "torch": "2.13.0",
+        "libraries": {"stable-baselines3": "2.9.2"},
+    }
+    line = machines([{"machine": cpu}, {"machine": cpu}, {"machine": cpu, "device": "cuda"}, {"seed": 3}])
+    assert line == (
+        " Measured on AMD EPYC (AVX2) and NVIDIA H100, torch 2.13.0, stable-baselines3 2.9.2;"
+        " AMD EPYC (AVX2), torch 2.13.0, stable-baselines3 2.9.2."
+    )
+    assert machines([{"seed": 0}]) == ""  # records of earlier versions carry no machine

@@ -61,7 +61,9 @@ def machines(records: list[dict[str, Any]]) -> str:
     """Where the seeds were measured, each machine once (records of earlier versions carry none)."""
     seen = sorted(
         {
-            f"{m['cpu']} ({m['cpu_capability']}), torch {m['torch']}, stable-baselines3 {m['libraries']['stable-baselines3']}"
+            f"{m['cpu']} ({m['cpu_capability']})"
+            + (f" and {m['gpu']}" if m["gpu"] and record.get("device") == "cuda" else "")
+            + f", torch {m['torch']}, stable-baselines3 {m['libraries']['stable-baselines3']}"
             for record in records
             if (m := record.get("machine"))
         }
