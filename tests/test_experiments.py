@@ -237,6 +237,18 @@ def test_goal_lines_use_only_the_tables_seeds(tmp_path):
     assert "Ours / Greedy on the training env: 0.800 (goal ≥ 1)" in two.write_table().read_text()
 
 
+def test_one_seed_table_says_it_ranks_nothing(tmp_path):
+    """A one-seed table ends with the warning that its columns carry no spread; a table of several seeds does not."""
+    from sb3_taskalloc.experiments.table_report import ONE_SEED
+
+    one = TableRun("RBF", 1, "smoke", tmp_path, progress=False)
+    one.folder.mkdir(parents=True)
+    for seed in range(2):
+        one._record("Ours", "train", seed, "110", 0.0)
+    assert one.write_table().read_text().rstrip().endswith(ONE_SEED)
+    assert ONE_SEED not in TableRun("RBF", 2, "smoke", tmp_path, progress=False).write_table().read_text()
+
+
 def test_resume_over_a_broken_model_file(tmp_path, capsys):
     """A model file cut short (a crash outside the runner) does not stop the resume: it is kept aside and the model is
     trained again."""

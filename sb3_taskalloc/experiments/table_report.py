@@ -74,6 +74,13 @@ def milp_gap_line(run: TableRun) -> list[str]:
             f"proven optimality, mean gap {g['mean_gap']:.4f}, largest {g['max_gap']:.4f}."]  # fmt: skip
 
 
+#: The last line of a one-seed table: its columns carry no spread over training seeds to judge a difference by.
+ONE_SEED = (
+    "One training seed: the table has no spread over seeds, so a difference between two columns is not a result "
+    "here (it may be the training's noise); `--seeds 5` gives each cell's mean ± std."
+)
+
+
 def write_table(run: TableRun) -> Path:
     """``table.csv`` (row, method, mean, std, n) and ``table.md`` (mean ± std, n/a with footnotes)."""
     done = run.done()
@@ -114,6 +121,8 @@ def write_table(run: TableRun) -> Path:
     reached = goals(run)
     if reached:
         lines += ["", "Goals (ratios of the means above; higher is better):", "", *[f"- {g}" for g in reached]]
+    if run.seeds == 1:  # without a spread over seeds a difference between two columns may be training noise
+        lines += ["", ONE_SEED]
     path = atomic_write_text(run.folder / "table.md", "\n".join(lines) + "\n")
     return path
 
