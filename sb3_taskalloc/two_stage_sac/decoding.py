@@ -91,11 +91,6 @@ class Decoder:
         st = policy.select_round(view, task_of, self.deterministic)
         return st.rank, st.kept()
 
-    def decide(self, policy: TAMPolicy, view: ObsView, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None) -> Decision:
-        """The whole decision of a pre-assigning policy: its pre-assign rounds, each with every task's team
-        (:func:`decide_preassigned`)."""
-        return decide_preassigned(policy, view, self, rounds_out)
-
 
 register_decoder(Decoder)
 
@@ -124,21 +119,6 @@ class UniformDecoder(Decoder):
     def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         st = policy.select_round(view, task_of, deterministic=False, uniform=True)
         return st.rank, st.kept()
-
-
-@register_decoder
-class PooledDecoder(Decoder):
-    """No pre-assignment: the tasks pick in slot order from one shared pool of free entities, each its pointer's argmax
-    team, and an abandoned task's picks return to the pool (:func:`decide_pooled`, the "W/o Pre (sequence)" decision
-    with the trained pointer). Where entities are scarce, a pre-assignment that gives each entity one task splits
-    them so that few tasks can be covered; one pool lets each task draw on every free entity."""
-
-    name = "pooled"
-
-    def decide(self, policy: TAMPolicy, view: ObsView, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None) -> Decision:
-        if rounds_out is not None:
-            raise ValueError("the 'pooled' decoder has no pre-assign rounds to record (rounds_out)")
-        return decide_pooled(policy, view, deterministic=True, uniform=False)
 
 
 @register_decoder

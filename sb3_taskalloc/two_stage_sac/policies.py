@@ -31,6 +31,7 @@ from sb3_taskalloc.two_stage_sac.decoding import (
     UNIFORM,
     Decoder,
     decide_pooled,
+    decide_preassigned,
     get_decoding_strategy,
 )
 from sb3_taskalloc.two_stage_sac.entity_values import SelectValues
@@ -399,7 +400,7 @@ class TAMPolicy(BasePolicy):
             if recorded is not None:
                 return recorded
             decoder = UNIFORM if uniform else self.decoder if deterministic else SAMPLED
-            return decoder.decide(self, view, rounds_out)
+            return decide_preassigned(self, view, decoder, rounds_out)
         if rounds_out is not None:
             raise ValueError("rounds_out needs a pre-assigning policy: without pre-assignment the tasks share one pool")
         # Without pre-assignment the tasks share one pool, so the decoders' searches do not apply: argmax or samples.
