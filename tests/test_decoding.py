@@ -107,7 +107,7 @@ def test_decoder_is_set_per_model_and_never_saved(tmp_path, legacy):
 
 
 def test_strategies_by_name_and_clear_errors():
-    assert {"argmax", "sampled", "preassign_search", "team_search", "exact_covers", "exact_top"} <= set(DECODERS)
+    assert {"argmax", "sampled", "preassign_search", "team_search", "exact_covers", "exact_top", "pooled"} <= set(DECODERS)
     with pytest.raises(ValueError, match="unknown decoding strategy 'beam'"):
         get_decoding_strategy("beam")
     with pytest.raises(ValueError, match=r"decoding strategy 'argmax'.*samples"):

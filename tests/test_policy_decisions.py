@@ -51,6 +51,48 @@ def test_rounds_give_the_left_over_entities_the_untried_tasks():
     assert pooled.decide(view, deterministic=True).env_action.tolist() == [[2, 2, 1]]
 
 
+def test_the_pooled_decoder_decides_as_w_o_pre_with_the_models_pointer():
+    """``pooled`` lets a pre-assigning model's pointer decide without its pre-assignment: the tasks pick in slot order
+    from one pool of free entities, as the "W/o Pre (sequence)" policy with the same pointer weights does, on RBF states
+    with robots spread over many apples; it has no pre-assign rounds to record, and says so."""
+    env = gym.make("TaskAlloc/RBF-v0")
+    th.manual_seed(0)
+    two_stage = make_policy(env, decoder="pooled")
+    without = make_policy(env, preassign=False)
+    without.selector.load_state_dict(two_stage.selector.state_dict())
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 6, seed=3)))
+    decision = two_stage.decide(view, deterministic=True)
+    pooled = decision.env_action
+    assert th.equal(pooled, without.decide(view, deterministic=True).env_action)
+    assert (decision.candidates.sum(1) > 1).any()  # one pool: a robot no task kept is offered to the next
+    two_stage.decoder = get_decoding_strategy("argmax")
+    assert not th.equal(pooled, two_stage.decide(view, deterministic=True).env_action)  # the pre-assignment decides otherwise
+    two_stage.decoder = get_decoding_strategy("pooled")
+    with pytest.raises(ValueError, match="'pooled' decoder has no pre-assign rounds"):
+        two_stage.decide(view, deterministic=True, rounds_out=[])
+    sampled = two_stage.decide(view, deterministic=False).candidates  # training's decisions stay the two stages'
+    assert (sampled.sum(1) <= 1).all()  # each robot a candidate of one task
+
+
+def test_the_pooled_decoders_theta_costs_the_pointer_as_select_values_do():
+    """``pooled(theta=θ)`` adds the per-robot values to the pointer's costs at decision time: it decides as the W/o Pre
+    policy whose pointer carries the same θ in ``select_values``, and otherwise than ``pooled`` on the model's own
+    costs; a θ that is not three finite numbers is refused by name."""
+    env = gym.make("TaskAlloc/RBF-v0")
+    th.manual_seed(0)
+    theta = (-0.114, -0.041, 0.010)
+    two_stage = make_policy(env, decoder="pooled", decoder_kwargs={"theta": theta})
+    without = make_policy(env, preassign=False, select_values={"theta": theta, "grid_size": 7})
+    without.selector.load_state_dict(two_stage.selector.state_dict())
+    view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 8, seed=5)))
+    costed = two_stage.decide(view, deterministic=True).env_action
+    assert th.equal(costed, without.decide(view, deterministic=True).env_action)
+    two_stage.decoder = get_decoding_strategy("pooled")
+    assert not th.equal(costed, two_stage.decide(view, deterministic=True).env_action)
+    with pytest.raises(ValueError, match="theta must be three finite numbers"):
+        get_decoding_strategy("pooled", theta=(0.1, float("nan"), 0.0))
+
+
 def test_preassign_search_takes_the_most_profitable_first_round():
     """With the ``preassign_search`` decoder of K samples a deterministic decision's first round is the best, by the
     step's profit, of the argmax

@@ -132,7 +132,7 @@ def _add_learn(sub: Any) -> None:
     learn.add_argument(
         "--decoder", default="argmax", metavar="NAME",
         help="then evaluate the trained and untrained models decoded by this strategy (sb3_taskalloc.two_stage_sac."
-        "decoding: argmax, sampled, preassign_search, team_search, exact_covers, exact_top, entity_value; and on "
+        "decoding: argmax, sampled, preassign_search, team_search, exact_covers, exact_top, entity_value, pooled; and on "
         "--zero-shot)",
     )  # fmt: skip
     learn.add_argument(

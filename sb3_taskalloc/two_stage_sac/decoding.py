@@ -91,6 +91,11 @@ class Decoder:
         st = policy.select_round(view, task_of, self.deterministic)
         return st.rank, st.kept()
 
+    def decide(self, policy: TAMPolicy, view: ObsView, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None) -> Decision:
+        """The whole decision of a pre-assigning policy: its pre-assign rounds, each with every task's team
+        (:func:`decide_preassigned`)."""
+        return decide_preassigned(policy, view, self, rounds_out)
+
 
 register_decoder(Decoder)
 

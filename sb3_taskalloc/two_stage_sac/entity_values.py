@@ -24,9 +24,11 @@ import torch as th
 
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
-from sb3_taskalloc.two_stage_sac.decoding import ExactTopDecoder, register_decoder
+from sb3_taskalloc.two_stage_sac.decoding import Decoder, ExactTopDecoder, decide_pooled, register_decoder
+from sb3_taskalloc.two_stage_sac.select_stage import Decision
 
 if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 #: The controls of the regression (a constant and the time left, t/T and (t/T)²), the same for every decision of a
@@ -142,6 +144,33 @@ class EntityValueDecoder(ExactTopDecoder):
     def costed(self, view: ObsView) -> ObsView:
         # The pointer's SelectValues compute these costs; built per call, as the fit's exploration sets the surcharge.
         return SelectValues(self.theta, self.grid_size, self.surcharge).costed(view)
+
+
+@register_decoder
+class PooledDecoder(Decoder):
+    """No pre-assignment: the tasks pick in slot order from one shared pool of free entities, each its pointer's argmax
+    team, and an abandoned task's picks return to the pool (:func:`.decoding.decide_pooled`, the "W/o Pre (sequence)"
+    decision with the trained pointer), on pair costs that also carry each entity's future value v_ij (module
+    docstring) on top of the model's own. Where entities are scarce, a pre-assignment that gives each entity one task
+    splits them so that few tasks can be covered; one pool lets each task draw on every free entity, and v_ij keeps a
+    task from spending robots that the next tasks need.
+
+    :param theta: (θ_free, θ_τ, θ_e); all zero: the pointer's own costs
+    :param grid_size: the grid's side, where tasks arrive at uniform cells
+    """
+
+    name = "pooled"
+
+    def __init__(self, theta: Sequence[float] = (0.0, 0.0, 0.0), grid_size: int = 7, seed: int = 0) -> None:
+        super().__init__(seed=seed)
+        check_counts({"grid_size": grid_size})
+        self.theta, self.grid_size = checked_theta(theta, "theta"), grid_size
+
+    def decide(self, policy: TAMPolicy, view: ObsView, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None) -> Decision:
+        if rounds_out is not None:
+            raise ValueError("the 'pooled' decoder has no pre-assign rounds to record (rounds_out)")
+        costed = SelectValues(self.theta, self.grid_size).costed(view) if any(self.theta) else view
+        return decide_pooled(policy, costed, deterministic=True, uniform=False)
 
 
 class EntityValueFit(NamedTuple):

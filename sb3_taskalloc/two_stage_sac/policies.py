@@ -31,7 +31,6 @@ from sb3_taskalloc.two_stage_sac.decoding import (
     UNIFORM,
     Decoder,
     decide_pooled,
-    decide_preassigned,
     get_decoding_strategy,
 )
 from sb3_taskalloc.two_stage_sac.entity_values import SelectValues
@@ -400,7 +399,7 @@ class TAMPolicy(BasePolicy):
             if recorded is not None:
                 return recorded
             decoder = UNIFORM if uniform else self.decoder if deterministic else SAMPLED
-            return decide_preassigned(self, view, decoder, rounds_out)
+            return decoder.decide(self, view, rounds_out)
         if rounds_out is not None:
             raise ValueError("rounds_out needs a pre-assigning policy: without pre-assignment the tasks share one pool")
         # Without pre-assignment the tasks share one pool, so the decoders' searches do not apply: argmax or samples.
