@@ -75,20 +75,22 @@ def test_the_pooled_decoder_decides_as_w_o_pre_with_the_models_pointer():
 
 
 def test_the_pooled_decoders_theta_costs_the_pointer_as_select_values_do():
-    """``pooled(theta=θ)`` adds the per-robot values to the pointer's costs at decision time: it decides as the W/o Pre
-    policy whose pointer carries the same θ in ``select_values``, and otherwise than ``pooled`` on the model's own
-    costs; a θ that is not three finite numbers is refused by name."""
+    """``pooled(theta=θ)`` prices the pointer's pairs with θ's per-robot values at decision time, in place of the
+    model's own: a model trained without values and one trained with another θ both decide as the W/o Pre policy
+    whose pointer carries θ in ``select_values``, and otherwise than ``pooled`` on their own costs; a θ that is not
+    three finite numbers is refused by name."""
     env = gym.make("TaskAlloc/RBF-v0")
     th.manual_seed(0)
     theta = (-0.114, -0.041, 0.010)
-    two_stage = make_policy(env, decoder="pooled", decoder_kwargs={"theta": theta})
     without = make_policy(env, preassign=False, select_values={"theta": theta, "grid_size": 7})
-    without.selector.load_state_dict(two_stage.selector.state_dict())
     view = parse_obs(batch(sample_observations("TaskAlloc/RBF-v0", 8, seed=5)))
-    costed = two_stage.decide(view, deterministic=True).env_action
-    assert th.equal(costed, without.decide(view, deterministic=True).env_action)
-    two_stage.decoder = get_decoding_strategy("pooled")
-    assert not th.equal(costed, two_stage.decide(view, deterministic=True).env_action)
+    expected = without.decide(view, deterministic=True).env_action
+    for own in (None, {"theta": (0.3, 0.05, -0.2), "grid_size": 7}):
+        two_stage = make_policy(env, decoder="pooled", decoder_kwargs={"theta": theta}, select_values=own)
+        two_stage.selector.load_state_dict(without.selector.state_dict())
+        assert th.equal(two_stage.decide(view, deterministic=True).env_action, expected)
+        two_stage.decoder = get_decoding_strategy("pooled")
+        assert not th.equal(two_stage.decide(view, deterministic=True).env_action, expected)
     with pytest.raises(ValueError, match="theta must be three finite numbers"):
         get_decoding_strategy("pooled", theta=(0.1, float("nan"), 0.0))
 

@@ -27,7 +27,7 @@ from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search, exact_covers, sampled_search, select_search
-from sb3_taskalloc.two_stage_sac.select_stage import Decision, env_action_of
+from sb3_taskalloc.two_stage_sac.select_stage import Decision, decode_round, env_action_of
 from sb3_taskalloc.two_stage_sac.settings import RECOMMENDED_DECODERS
 
 if TYPE_CHECKING:
@@ -366,9 +366,14 @@ def decide_preassigned(
     return first._replace(env_action=env_action)
 
 
-def decide_pooled(policy: TAMPolicy, view: ObsView, deterministic: bool, uniform: bool) -> Decision:
+def decide_pooled(
+    policy: TAMPolicy, view: ObsView, deterministic: bool, uniform: bool, select_view: ObsView | None = None
+) -> Decision:
     """W/o Pre: tasks pick in turn (``task_order``) from one shared pool; abandoned picks return to the pool (the
-    published code lost them)."""
+    published code lost them).
+
+    :param select_view: ``view`` on the pair costs the pointer decodes on (None: :meth:`~.TAMPolicy.select_view`'s)"""
+    costed = policy.select_view(view) if select_view is None else select_view
     B, N, M = view.pair_cost.shape
     device = view.pair_cost.device
     if policy.task_order == "random":
@@ -385,7 +390,7 @@ def decide_pooled(policy: TAMPolicy, view: ObsView, deterministic: bool, uniform
         open_j = view.task_mask[rows, j]
         task_of = th.where(pool & open_j.unsqueeze(-1), j.unsqueeze(-1), -1)
         candidates[rows, j] = task_of >= 0
-        st = policy.select_round(view, task_of, deterministic, uniform)
+        st = decode_round(policy.selector.head, costed, task_of, deterministic, uniform)
         kept_r = st.kept()
         rank = th.where(st.rank >= 0, st.rank, rank)
         kept = kept | kept_r

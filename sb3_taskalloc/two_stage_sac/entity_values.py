@@ -150,12 +150,14 @@ class EntityValueDecoder(ExactTopDecoder):
 class PooledDecoder(Decoder):
     """No pre-assignment: the tasks pick in slot order from one shared pool of free entities, each its pointer's argmax
     team, and an abandoned task's picks return to the pool (:func:`.decoding.decide_pooled`, the "W/o Pre (sequence)"
-    decision with the trained pointer), on pair costs that also carry each entity's future value v_ij (module
-    docstring) on top of the model's own. Where entities are scarce, a pre-assignment that gives each entity one task
-    splits them so that few tasks can be covered; one pool lets each task draw on every free entity, and v_ij keeps a
-    task from spending robots that the next tasks need.
+    decision with the trained pointer), on pair costs that carry each entity's future value v_ij with this θ (module
+    docstring) in place of the model's own (``select_values``; its surcharge stays), so that models trained with and
+    without RBF's θ decide alike. Where entities are scarce, a pre-assignment that gives each entity one task splits
+    them so that few tasks can be covered; one pool lets each task draw on every free entity, and v_ij keeps a task
+    from spending robots that the next tasks need (RBF-EntityShift's recommended decoder: docs/learning.md, "One pool
+    and RBF's per-robot values").
 
-    :param theta: (θ_free, θ_τ, θ_e); all zero: the pointer's own costs
+    :param theta: (θ_free, θ_τ, θ_e); all zero: the pointer's own costs, the model's values included
     :param grid_size: the grid's side, where tasks arrive at uniform cells
     """
 
@@ -169,8 +171,11 @@ class PooledDecoder(Decoder):
     def decide(self, policy: TAMPolicy, view: ObsView, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None) -> Decision:
         if rounds_out is not None:
             raise ValueError("the 'pooled' decoder has no pre-assign rounds to record (rounds_out)")
-        costed = SelectValues(self.theta, self.grid_size).costed(view) if any(self.theta) else view
-        return decide_pooled(policy, costed, deterministic=True, uniform=False)
+        if not any(self.theta):
+            return decide_pooled(policy, view, deterministic=True, uniform=False)
+        surcharge = 0.0 if policy.select_values is None else policy.select_values.surcharge
+        costed = SelectValues(self.theta, self.grid_size, surcharge).costed(view)
+        return decide_pooled(policy, view, deterministic=True, uniform=False, select_view=costed)
 
 
 class EntityValueFit(NamedTuple):
