@@ -171,10 +171,10 @@ class PooledDecoder(Decoder):
     def decide(self, policy: TAMPolicy, view: ObsView, rounds_out: list[tuple[ObsView, th.Tensor]] | None = None) -> Decision:
         if rounds_out is not None:
             raise ValueError("the 'pooled' decoder has no pre-assign rounds to record (rounds_out)")
-        if not any(self.theta):
-            return decide_pooled(policy, view, deterministic=True, uniform=False)
-        surcharge = 0.0 if policy.select_values is None else policy.select_values.surcharge
-        costed = SelectValues(self.theta, self.grid_size, surcharge).costed(view)
+        costed = None  # θ = 0: the pointer's own costs (TAMPolicy.select_view)
+        if any(self.theta):
+            surcharge = 0.0 if policy.select_values is None else policy.select_values.surcharge
+            costed = SelectValues(self.theta, self.grid_size, surcharge).costed(view)
         return decide_pooled(policy, view, deterministic=True, uniform=False, select_view=costed)
 
 

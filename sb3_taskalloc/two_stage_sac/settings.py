@@ -36,7 +36,7 @@ PAPER_KWARGS: dict[str, Any] = {
 #: detail 27; θ fitted with the decoder in the loop on training seeds 0–1; docs/learning.md, "A learned per-robot
 #: value"). MT: the exact pre-assignment over every pair with each pair's cost raised by the surcharge (detail 25;
 #: "The surcharge's size"). RBF-EntityShift (50 robots): no pre-assignment, the tasks drawing on one pool with the
-#: pointer on RBF's θ (detail 29; rule set on seeds 20–24, reported on 25–29: "One pool and RBF's per-robot values").
+#: pointer on RBF's θ (detail 30; found on seeds 20–24, its rule measured on 25–29: "One pool and RBF's per-robot values").
 #: MT-EntityShift: MT's ("MT's recommended decoder on MT-EntityShift and MT-TaskShift"). Other envs decide by the
 #: argmax (on EPT the exact decoders measured no better).
 RECOMMENDED_DECODERS: dict[str, tuple[str, dict[str, Any]]] = {
