@@ -37,9 +37,9 @@ PAPER_KWARGS: dict[str, Any] = {
 #: value"). MT: the exact pre-assignment over every pair with each pair's cost raised by the surcharge (detail 25;
 #: "The surcharge's size"). RBF-EntityShift (50 robots): no pre-assignment, the tasks drawing on one pool with the
 #: pointer on RBF's θ (detail 30; found on seeds 20–24, its rule measured on 25–29: "One pool and RBF's per-robot values").
-#: MT-EntityShift and MT-TaskShift: MT's ("MT's recommended decoder on MT-EntityShift and MT-TaskShift"). Other envs
-#: decide by the argmax (on EPT the exact decoders measured no better). RBF-TaskShift: RBF's ("RBF's recommended decoder
-#: on RBF-TaskShift").
+#: MT-EntityShift and MT-TaskShift: MT's ("MT's recommended decoder on MT-EntityShift and MT-TaskShift"). RBF-TaskShift:
+#: RBF's ("RBF's recommended decoder on RBF-TaskShift"). Other envs decide by the argmax (on EPT the exact decoders
+#: measured no better).
 RECOMMENDED_DECODERS: dict[str, tuple[str, dict[str, Any]]] = {
     # 1.16 × the per-step MILP, 16–27 ms median per decision
     "TaskAlloc/RBF-v0": ("entity_value", {"top": 2, "theta": (-0.114, -0.041, 0.010)}),
