@@ -30,6 +30,11 @@ PAPER_KWARGS: dict[str, Any] = {
 }
 
 
+#: RBF's learned per-robot value θ = (θ_free, θ_τ, θ_e): the mean of its fits on training seeds 0–1, rounded (detail 27).
+RBF_THETA: tuple[float, float, float] = (-0.114, -0.041, 0.010)
+_RBF_DECODER: tuple[str, dict[str, Any]] = ("entity_value", {"top": 2, "theta": RBF_THETA})
+_MT_DECODER: tuple[str, dict[str, Any]] = ("exact_top", {"top": 10, "surcharge": 0.64})
+
 #: Each env's best deployment decoding measured, as (strategy name, its settings) for ``model.set_decoder(name,
 #: **settings)`` or :func:`~sb3_taskalloc.two_stage_sac.decoding.recommended_decoder`, chosen on training seeds and
 #: reported on others. RBF: the exact pre-assignment with learned per-robot values in the pair costs (implementation
@@ -41,17 +46,16 @@ PAPER_KWARGS: dict[str, Any] = {
 #: RBF's ("RBF's recommended decoder on RBF-TaskShift"). Other envs decide by the argmax (on EPT the exact decoders
 #: measured no better).
 RECOMMENDED_DECODERS: dict[str, tuple[str, dict[str, Any]]] = {
-    # 1.16 × the per-step MILP, 16–27 ms median per decision
-    "TaskAlloc/RBF-v0": ("entity_value", {"top": 2, "theta": (-0.114, -0.041, 0.010)}),
-    "TaskAlloc/MT-v0": ("exact_top", {"top": 10, "surcharge": 0.64}),  # 1.14 × the per-step MILP, 2 ms median
+    "TaskAlloc/RBF-v0": _RBF_DECODER,  # 1.16 × the per-step MILP, 16–27 ms median per decision
+    "TaskAlloc/MT-v0": _MT_DECODER,  # 1.14 × the per-step MILP, 2 ms median
     # 1.00 × the per-step MILP against the argmax's 0.75 ×, 27 ms median per decision
-    "TaskAlloc/RBF-EntityShift-v0": ("pooled", {"theta": (-0.114, -0.041, 0.010)}),
+    "TaskAlloc/RBF-EntityShift-v0": ("pooled", {"theta": RBF_THETA}),
     # MT's decoder on MT's block there: 1.05 × the per-step MILP against the argmax's 0.90 × (seeds 25–29)
-    "TaskAlloc/MT-EntityShift-v0": ("exact_top", {"top": 10, "surcharge": 0.64}),
+    "TaskAlloc/MT-EntityShift-v0": _MT_DECODER,
     # MT's decoder on MT's block there: 1.12 × the per-step MILP against the argmax's 1.00 × (seeds 25–29)
-    "TaskAlloc/MT-TaskShift-v0": ("exact_top", {"top": 10, "surcharge": 0.64}),
+    "TaskAlloc/MT-TaskShift-v0": _MT_DECODER,
     # RBF's decoder on RBF's block there: 1.15 × the per-step MILP against the argmax's 1.05 × (seeds 25–29), 43 ms median
-    "TaskAlloc/RBF-TaskShift-v0": ("entity_value", {"top": 2, "theta": (-0.114, -0.041, 0.010)}),
+    "TaskAlloc/RBF-TaskShift-v0": _RBF_DECODER,
 }
 
 
