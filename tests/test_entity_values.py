@@ -115,6 +115,33 @@ def test_fit_runs_the_decoder_in_the_loop_and_damps(rbf_model):
         EntityValueDecoder(theta=(1.0, float("nan"), 0.0))
 
 
+def test_fit_interrupted_keeps_the_iterations_done(rbf_model, monkeypatch):
+    """Ctrl-C during the second iteration returns the first iteration's θ with a warning; during the first it raises."""
+    from sb3_taskalloc.two_stage_sac import entity_values
+
+    short = {**SMALL, "max_episode_steps": 15}
+    real_play, calls = entity_values.play, []
+
+    def play_until(stop: int):
+        def play(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == stop:
+                raise KeyboardInterrupt
+            return real_play(*args, **kwargs)
+
+        return play
+
+    monkeypatch.setattr(entity_values, "play", play_until(2))
+    with pytest.warns(UserWarning, match="interrupted after 1 of 2 iterations"):
+        fit = fit_entity_values(rbf_model, "TaskAlloc/RBF-v0", iterations=2, episodes=1, env_kwargs=short)
+    assert len(fit.thetas) == 2 and len(fit.r2) == len(fit.train_returns) == 1
+    assert fit.thetas[1] != fit.thetas[0] and fit.decoder.theta == fit.thetas[1]
+    calls.clear()
+    monkeypatch.setattr(entity_values, "play", play_until(1))
+    with pytest.raises(KeyboardInterrupt):
+        fit_entity_values(rbf_model, "TaskAlloc/RBF-v0", iterations=2, episodes=1, env_kwargs=short)
+
+
 def test_distill_select_teacher_costs(rbf_model: TwoStageSAC):
     """``distill_select(teacher=...)``: the covers are solved and kept under the teacher's ``costed`` view. On RBF
     ``"recommended"`` is ``entity_value``'s costs; a surcharge under which no team pays labels nothing and leaves the

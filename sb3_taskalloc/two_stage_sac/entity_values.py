@@ -16,6 +16,7 @@ Manhattan travel (RBF); measured in docs/learning.md ("A learned per-robot value
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -274,7 +275,8 @@ def fit_entity_values(
     noise on the solver's coefficients: on-policy the entities a decision keeps and their later return hardly vary),
     regresses the commitment return after each decision on the post-decision Σ φ with the controls, and moves θ to
     (1 − ``damping``)·θ + ``damping``·fit (the first fit whole). The measured setting: RBF, 2 iterations of 8 episodes
-    (docs/learning.md); each RBF episode takes about 20 s on one CPU thread.
+    (docs/learning.md); each RBF episode takes about 20 s on one CPU thread. Ctrl-C returns the θ of the iterations
+    done, with a warning (before the first ends, it raises KeyboardInterrupt).
 
     :param model: its policy prunes each entity's pairs to its ``top`` most probable tasks
     :param env_id: a grid env with Manhattan travel (``grid_size``; ``info["commitment_reward"]``)
@@ -300,19 +302,30 @@ def fit_entity_values(
     theta = np.zeros(3)
     thetas, r2s, train_returns = [tuple(float(x) for x in theta)], [], []
     bar = tqdm(total=iterations * episodes, disable=not progress_bar, desc="entity values")
-    for k in range(iterations):
-        decoder, rows, y, returns = EntityValueDecoder(top, theta.tolist(), grid_size), [], [], []
-        for e in range(episodes):
-            explorer = Exploration(np.random.default_rng([seed, k, e]), explore)
-            total, episode_rows, after = play(model, env, decoder, reset_seed + 100 * k + e, explorer)
-            rows.append(episode_rows)
-            y.append(after)
-            returns.append(total)
-            bar.update()
-        fitted, r2 = regress(np.concatenate(rows), np.concatenate(y))
-        theta = fitted if k == 0 else (1.0 - damping) * theta + damping * fitted
-        thetas.append(tuple(float(x) for x in theta))
-        r2s.append(r2)
-        train_returns.append(float(np.mean(returns)))
-    bar.close()
-    return EntityValueFit(EntityValueDecoder(top, theta.tolist(), grid_size), thetas, r2s, train_returns)
+    try:
+        for k in range(iterations):
+            decoder, rows, y, returns = EntityValueDecoder(top, theta.tolist(), grid_size), [], [], []
+            for e in range(episodes):
+                explorer = Exploration(np.random.default_rng([seed, k, e]), explore)
+                total, episode_rows, after = play(model, env, decoder, reset_seed + 100 * k + e, explorer)
+                rows.append(episode_rows)
+                y.append(after)
+                returns.append(total)
+                bar.update()
+            fitted, r2 = regress(np.concatenate(rows), np.concatenate(y))
+            theta = fitted if k == 0 else (1.0 - damping) * theta + damping * fitted
+            thetas.append(tuple(float(x) for x in theta))
+            r2s.append(r2)
+            train_returns.append(float(np.mean(returns)))
+    except KeyboardInterrupt:
+        if len(thetas) == 1:  # no iteration ended: there is no fit to keep
+            raise
+        # Minutes of episodes are in the iterations done: keep them, as Ctrl-C during DAgger keeps its iterations.
+        warnings.warn(
+            f"fit_entity_values interrupted after {len(thetas) - 1} of {iterations} iterations; it returns their θ",
+            stacklevel=2,
+        )
+    finally:
+        bar.close()
+    done = len(thetas) - 1  # the iterations whose θ was recorded whole
+    return EntityValueFit(EntityValueDecoder(top, list(thetas[-1]), grid_size), thetas, r2s[:done], train_returns[:done])
