@@ -256,6 +256,25 @@ def test_entry_points_answer_help(module):
 
 
 @pytest.mark.parametrize(
+    ("module", "argv"),
+    [
+        ("sb3_taskalloc.experiments.__main__", ["almighty"]),
+        ("sb3_taskalloc.experiments.__main__", ["diagnose", "--env", "RBF"]),
+        ("sb3_taskalloc.experiments.bench", ["envs"]),
+        ("sb3_taskalloc.experiments.demo", []),
+    ],
+)
+def test_clis_refuse_an_unwritable_out_before_any_work(tmp_path, module, argv):
+    """A folder that cannot be written is named at once, not after minutes of work whose results it would lose."""
+    import importlib
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(SystemExit, match="cannot write to --out"):
+        importlib.import_module(module).main([*argv, "--out", str(blocker / "sub")])
+
+
+@pytest.mark.parametrize(
     ("kwargs", "match"),
     [
         ({"batch_size": 0}, "batch_size must be a positive integer"),

@@ -148,3 +148,16 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
     return Path(path)
+
+
+def writable_folder(path: str | os.PathLike[str]) -> Path:
+    """``path`` created and checked for writing before any work is done, or ``SystemExit`` naming the problem: a command
+    line's ``--out`` that cannot be written must not cost a run whose results it would lose at the end."""
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise SystemExit(f"error: cannot write to --out {folder}: {error.strerror or error}") from None
+    return folder

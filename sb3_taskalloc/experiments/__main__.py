@@ -152,7 +152,10 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch as th
 
+    from sb3_taskalloc.common.utils import writable_folder
+
     th.set_num_threads(1)
+    writable_folder(args.out)  # before any training: a run must not end on a folder it cannot write
     commands = {"learn": _learn, "diagnose": _diagnose, "almighty": _almighty, "table": _table}
     commands[args.command](parser, args)
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import tempfile
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -19,7 +18,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.utils import set_random_seed
 
-from sb3_taskalloc.common.utils import atomic_path
+from sb3_taskalloc.common.utils import atomic_path, writable_folder
 from sb3_taskalloc.experiments.plots import plot_incomes
 from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, load_worker_config, make_market
 from sb3_taskalloc.zoo_config import config_path
@@ -105,18 +104,6 @@ def save_history(history: list[dict[str, float]], folder: Path, title: str) -> l
         for k, row in enumerate(history):
             writer.writerow({"episode": k, **row})
     return [folder / "incomes.csv", plot_incomes(history, folder / "incomes.png", title)]
-
-
-def writable_folder(path: str | Path) -> Path:
-    """``path`` created and checked for writing before any work is done, or ``SystemExit`` naming the problem."""
-    folder = Path(path)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as error:
-        raise SystemExit(f"error: cannot write to --out {folder}: {error.strerror or error}") from None
-    return folder
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -55,6 +55,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import envs
     from sb3_taskalloc import SelectDAggerCallback, TwoStageSAC
+    from sb3_taskalloc.common.utils import writable_folder
 
     th.set_num_threads(args.threads)
     if args.env not in envs.ENV_SPECS:
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
             self.ends += [(self.num_timesteps, info["episode"]["r"]) for info in self.locals["infos"] if "episode" in info]
             return True
 
-    out = Path(args.out)
+    out = writable_folder(args.out)  # before training: the model and the report are written at the end
     # The env's recommended configuration at a demo's budget: its zoo block, with a warm-up of a third of the steps; the
     # block's DAgger runs below on batched rollouts, shortened.
     model = TwoStageSAC.from_zoo(args.env, seed=args.seed, n_envs=args.n_envs, learning_starts=args.steps // 3)

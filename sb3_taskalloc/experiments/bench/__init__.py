@@ -15,10 +15,9 @@ import argparse
 import json
 import shlex
 import sys
-from pathlib import Path
 from typing import Any
 
-from sb3_taskalloc.common.utils import atomic_write_text
+from sb3_taskalloc.common.utils import atomic_write_text, writable_folder
 from sb3_taskalloc.experiments.bench.common import BenchFn
 from sb3_taskalloc.experiments.bench.envs import bench_baselines, bench_envs
 from sb3_taskalloc.experiments.bench.policy import MT_DECODER, SEARCH, TEAM_SEARCH, bench_labels, bench_policy
@@ -106,8 +105,7 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.set_num_threads(1)
     names = list(BENCHES) if args.which == "all" else [args.which]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = writable_folder(args.out)  # before the benchmarks, some of which take minutes
     for k, name in enumerate(names, 1):
         print(f"benchmark {name} ({k} of {len(names)}): running", flush=True)  # some take minutes before their table
         rows = BENCHES[name](args)
