@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import envs
+from sb3_taskalloc.common.utils import writable_folder
 from sb3_taskalloc.experiments.budgets import BUDGETS, ENVS, METHODS, env_name, yaml_mapping
 
 #: Every command's ``--help`` shows the defaults.
@@ -152,10 +153,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch as th
 
-    from sb3_taskalloc.common.utils import writable_folder
-
     th.set_num_threads(1)
-    writable_folder(args.out)  # before any training: a run must not end on a folder it cannot write
     commands = {"learn": _learn, "diagnose": _diagnose, "almighty": _almighty, "table": _table}
     commands[args.command](parser, args)
 
@@ -165,6 +163,7 @@ def _almighty(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
 
     if min(args.seeds, args.steps, args.every) < 1:
         parser.error("--seeds, --steps and --every must be >= 1")
+    writable_folder(args.out)
     print(f"wrote {almighty_figure(args.seeds, args.steps, args.every, args.out)}")
 
 
@@ -173,6 +172,7 @@ def _table(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error(f"--seeds must be >= 1, got {args.seeds}")
     from sb3_taskalloc.experiments.table import TableRun
 
+    writable_folder(args.out)
     if args.fresh:
         for name in ("cells.csv", "models", "logs"):
             path = Path(args.out) / args.env / name
@@ -225,6 +225,7 @@ def _learn(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         run.check_more_episodes(args.more_episodes)
     except ValueError as error:
         parser.error(f"--more-episodes: {error}")
+    writable_folder(args.out)
     path = run.run(jobs=args.jobs)
     print(path.read_text())
     print(f"wrote {path}, {path.with_suffix('.json')}, {path.with_suffix('.png')}")
@@ -252,6 +253,7 @@ def _diagnose(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None
     if args.branches == 1 or args.branches < 0 or args.branch_stride < 1:
         parser.error("--branches must be 0 (skip) or >= 2, and --branch-stride >= 1")
     env_id = f"TaskAlloc/{args.env}-v0"
+    writable_folder(args.out)
     if args.model:
         model = TwoStageSAC.load(args.model, device="cpu")
     else:
