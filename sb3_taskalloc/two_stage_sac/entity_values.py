@@ -280,9 +280,17 @@ def fit_entity_values(
 
     :param model: its policy prunes each entity's pairs to its ``top`` most probable tasks
     :param env_id: a grid env with Manhattan travel (``grid_size``; ``info["commitment_reward"]``)
+    :param iterations: rounds of play and fit
+    :param episodes: episodes per iteration; on RBF 16 narrowed the spread of the fits' returns over seeds (std 3.6
+        against 9.6) at twice the time, with a mean gain inside the spread (docs/learning.md, "episodes per iteration")
+    :param explore: the upper end of the per-decision surcharge ξ (0: none)
+    :param damping: the weight of each new fit in θ after the first, in (0, 1]
+    :param top: each entity's most probable tasks the solve considers
+    :param reset_seed: the first training episode's reset seed
     :param seed: seeds the exploration's draws
     :param env_kwargs: keyword arguments of ``gym.make(env_id)``
     :param progress_bar: a progress bar over the episodes
+    :return: the decoder with the last θ, every θ, each iteration's R² and its training episodes' mean return
     """
     import gymnasium as gym
     from tqdm.rich import tqdm
