@@ -259,6 +259,8 @@ def test_entry_points_answer_help(module):
     ("module", "argv"),
     [
         ("sb3_taskalloc.experiments.__main__", ["almighty"]),
+        ("sb3_taskalloc.experiments.__main__", ["table", "--env", "Almighty"]),
+        ("sb3_taskalloc.experiments.__main__", ["learn", "--env", "Almighty"]),
         ("sb3_taskalloc.experiments.__main__", ["diagnose", "--env", "RBF"]),
         ("sb3_taskalloc.experiments.bench", ["envs"]),
         ("sb3_taskalloc.experiments.demo", []),
