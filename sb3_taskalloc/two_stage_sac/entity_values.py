@@ -335,5 +335,4 @@ def fit_entity_values(
         )
     finally:
         bar.close()
-    done = len(thetas) - 1  # the iterations whose θ was recorded whole
-    return EntityValueFit(EntityValueDecoder(top, list(thetas[-1]), grid_size), thetas, r2s[:done], train_returns[:done])
+    return EntityValueFit(EntityValueDecoder(top, list(thetas[-1]), grid_size), thetas, r2s, train_returns)
