@@ -120,14 +120,18 @@ def test_co_training_is_deterministic_and_trains_both():
     assert not th.equal(params(manager.policy), params(fresh.policy))
 
 
-def test_save_and_load_workers(tmp_path):
-    workers = BiddingWorkers(3, 3.0, seed=0)
+@pytest.mark.parametrize("kwargs", [{}, {"policy_kwargs": {"net_arch": [32]}, "learning_rate": 1e-3, "buffer_size": 500}])
+def test_save_and_load_workers(tmp_path, kwargs):
+    """Workers load as they were saved, their DDPG settings included (a network of another shape than the default
+    failed to load when only the market's settings were saved)."""
+    workers = BiddingWorkers(3, 3.0, seed=0, **kwargs)
     workers.sigma = 0.2
     workers.save(tmp_path / "workers")
     loaded = BiddingWorkers.load(tmp_path / "workers")
     x = np.random.default_rng(0).standard_normal((7, 14)).astype(np.float32)
     np.testing.assert_allclose(loaded.bid(x, explore=False), workers.bid(x, explore=False))
     assert loaded.sigma == pytest.approx(0.2)
+    assert loaded.ddpg.learning_rate == workers.ddpg.learning_rate and loaded.ddpg.buffer_size == workers.ddpg.buffer_size
 
 
 def frozen_market_stats(workers: BiddingWorkers, seed: int) -> tuple[float, float]:

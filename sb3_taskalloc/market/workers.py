@@ -19,6 +19,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG
 from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
 
@@ -191,9 +192,11 @@ class BiddingWorkers:
 
     @classmethod
     def load(cls, path: str | Path, seed: int | None = None, device: str = "auto") -> BiddingWorkers:
-        """Load workers saved by :meth:`save` (the policy and σ; the replay buffer starts empty)."""
+        """Load workers saved by :meth:`save` (the policy, its DDPG settings and σ; the replay buffer starts empty)."""
         path = Path(path)
         state = json.loads(path.with_suffix(".json").read_text())
+        # The network's shape and the optimiser's settings are DDPG's own, saved in its zip (SB3 pickles them).
+        data, _, _ = load_from_zip_file(path.with_suffix(".zip"), device=device)
         workers = cls(
             state["n_resources"],
             state["bid_max"],
@@ -203,6 +206,9 @@ class BiddingWorkers:
             batch_size=state["batch_size"],
             learning_starts=state["learning_starts"],
             gradient_steps=state["gradient_steps"],
+            learning_rate=data["learning_rate"],
+            buffer_size=data["buffer_size"],
+            policy_kwargs=data["policy_kwargs"],
             seed=seed,
             device=device,
         )
