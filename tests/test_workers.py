@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -241,3 +243,42 @@ def test_default_worker_config_does_not_depend_on_the_current_folder(tmp_path, m
     with pytest.raises(SystemExit):
         cotrain.main(["--env", "TaskAlloc/MT-v0", "--manager", "greedy", "--out", str(tmp_path / "o")])
     assert seen == load_worker_config(cotrain.DEFAULT_CONF, "TaskAlloc/MT-v0") and seen
+
+
+def test_cli_resumes_after_a_kill_and_after_ctrl_c(tmp_path, monkeypatch, capsys):
+    """Co-training saves a checkpoint every ``--checkpoint-every`` steps and at Ctrl-C, and the same command started
+    again continues from it: a kill (any error but Ctrl-C) loses the steps since the last checkpoint, Ctrl-C none."""
+    from sb3_taskalloc.experiments import cotrain
+
+    argv = ["--env", "TaskAlloc/MT-v0", "--timesteps", "60", "--checkpoint-every", "20", "--out", str(tmp_path)]
+    hook = cotrain.Checkpoints.hook
+
+    def stop_at(step: int, error: type[BaseException]) -> None:
+        def stopping(self, *args):
+            hook(self, *args)
+            if self.steps == step:
+                raise error
+
+        monkeypatch.setattr(cotrain.Checkpoints, "hook", stopping)
+
+    stop_at(45, RuntimeError)  # as a kill: nothing runs after it
+    with pytest.raises(RuntimeError):
+        cotrain.main(argv)
+    (folder,) = tmp_path.glob("checkpoint_*")
+    assert json.loads((folder / "state.json").read_text())["steps"] == 40
+    assert sorted(p.name for p in folder.iterdir()) == ["manager_40.zip", "state.json", "workers_40.json", "workers_40.zip"]
+    stop_at(50, KeyboardInterrupt)
+    with pytest.raises(SystemExit) as stopped:
+        cotrain.main(argv)
+    assert stopped.value.code == 130
+    out = capsys.readouterr().out
+    assert "resuming from the checkpoint at step 40 of 60" in out and "interrupted at step 50 of 60" in out
+    assert TwoStageSAC.load(tmp_path / "manager.zip").num_timesteps == 50  # what Ctrl-C stopped is saved
+    monkeypatch.setattr(cotrain.Checkpoints, "hook", hook)
+    cotrain.main(argv)
+    assert "resuming from the checkpoint at step 50 of 60" in capsys.readouterr().out
+    manager = TwoStageSAC.load(tmp_path / "manager.zip")
+    assert manager.num_timesteps == 60 and manager.learning_starts == 500  # its own warm-up, not the resumed one's
+    assert not folder.exists()  # a finished run leaves no checkpoint
+    cotrain.main([*argv[:-2], "--seed", "1", "--out", str(tmp_path)])  # other arguments: a new run
+    assert "resuming" not in capsys.readouterr().out

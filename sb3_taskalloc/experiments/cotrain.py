@@ -4,21 +4,26 @@
 step, alternating with the manager's updates); either side can be frozen (a trained model or a baseline allocator for
 the manager, ``train=False`` for the workers).
 
-CLI: ``python -m sb3_taskalloc.workers --env TaskAlloc/RBF-v0 --timesteps 20000 --out results/workers``.
+CLI: ``python -m sb3_taskalloc.workers --env TaskAlloc/RBF-v0 --timesteps 20000 --out results/workers``. It saves a
+checkpoint every ``--checkpoint-every`` steps and at Ctrl-C; the same command started again continues from it.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import set_random_seed
 
-from sb3_taskalloc.common.utils import atomic_path, writable_folder
+from sb3_taskalloc.common.utils import atomic_path, atomic_write_text, writable_folder
 from sb3_taskalloc.experiments.plots import plot_incomes
 from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, load_worker_config, make_market
 from sb3_taskalloc.zoo_config import config_path
@@ -30,14 +35,37 @@ class Manager(Protocol):
     ) -> tuple[np.ndarray, Any]: ...
 
 
-def run_manager(market: WorkerMarket, manager: Manager, total_timesteps: int, seed: int | None = None) -> None:
+#: Called after every env step of :func:`co_train` with the steps done in that call, the manager and the market.
+StepHook = Callable[[int, Any, WorkerMarket], None]
+
+
+def run_manager(
+    market: WorkerMarket, manager: Manager, total_timesteps: int, seed: int | None = None, hook: StepHook | None = None
+) -> None:
     """Run a fixed (frozen) manager on the market for ``total_timesteps`` env steps (the workers learn if ``train``)."""
     obs, _ = market.reset(seed=seed)
-    for _ in range(total_timesteps):
+    for step in range(1, total_timesteps + 1):
         action, _ = manager.predict(obs, deterministic=True)
         obs, _, terminated, truncated, _ = market.step(action)
         if terminated or truncated:
             obs, _ = market.reset()
+        if hook is not None:
+            hook(step, manager, market)
+
+
+class _HookCallback(BaseCallback):
+    """Calls a :data:`StepHook` after every env step of a learning manager."""
+
+    def __init__(self, hook: StepHook, market: WorkerMarket) -> None:
+        super().__init__()
+        self.hook, self.market = hook, market
+
+    def _on_training_start(self) -> None:
+        self.start = self.model.num_timesteps
+
+    def _on_step(self) -> bool:
+        self.hook(self.model.num_timesteps - self.start, self.model, self.market)
+        return True
 
 
 def co_train(
@@ -51,6 +79,7 @@ def co_train(
     manager_kwargs: dict[str, Any] | None = None,
     worker_kwargs: dict[str, Any] | None = None,
     progress_bar: bool = False,
+    hook: StepHook | None = None,
 ) -> tuple[Any, WorkerMarket]:
     """Co-train a manager and the workers on a bidding market.
 
@@ -65,6 +94,8 @@ def co_train(
     :param manager_kwargs: TwoStageSAC keywords for a new manager
     :param worker_kwargs: :class:`BiddingWorkers` keywords for new workers
     :param progress_bar: SB3 progress bar for a learning manager
+    :param hook: called after every env step with the steps done in this call, the manager and the market (the CLI
+        saves its checkpoints from it)
     :return: the manager and the market (``market.history`` holds the per-episode incomes)
     """
     from sb3_taskalloc.two_stage_sac import TwoStageSAC
@@ -75,10 +106,12 @@ def co_train(
         manager = TwoStageSAC("TAMPolicy", market, seed=seed, **(manager_kwargs or {}))
     elif isinstance(manager, TwoStageSAC):
         manager.set_env(market)
+        manager.set_random_seed(seed)  # the market's episodes too: a manager loaded without an env has no seed for them
     if isinstance(manager, TwoStageSAC) and train_manager:
-        manager.learn(total_timesteps, progress_bar=progress_bar, reset_num_timesteps=False)
+        callback = None if hook is None else _HookCallback(hook, market)
+        manager.learn(total_timesteps, callback=callback, progress_bar=progress_bar, reset_num_timesteps=False)
     else:
-        run_manager(market, manager, total_timesteps, seed=seed)
+        run_manager(market, manager, total_timesteps, seed=seed, hook=hook)
     return manager, market
 
 
@@ -106,6 +139,72 @@ def save_history(history: list[dict[str, float]], folder: Path, title: str) -> l
     return [folder / "incomes.csv", plot_incomes(history, folder / "incomes.png", title)]
 
 
+class Checkpoints:
+    """The CLI's checkpoints of one co-training run, in one folder per set of arguments: the learning manager (without
+    its replay buffer, 2 GB on RBF at the default size), the workers (without theirs) and the incomes of the finished
+    episodes. ``state.json``, written after the files it names, says which step they belong to, so a kill during a
+    save leaves the previous checkpoint in force.
+
+    :param folder: where they are kept
+    :param every: env steps between checkpoints
+    :param save_manager: whether the manager learns, and so is saved
+    """
+
+    def __init__(self, folder: Path, every: int, save_manager: bool) -> None:
+        self.folder, self.every, self.save_manager = folder, every, save_manager
+        self.done = 0  # steps of the checkpoint this process resumed from
+        self.history_before: list[dict[str, float]] = []
+        self.learning_starts: int | None = None  # the manager's own: a resumed one warms up again, its buffer new
+        self.last: tuple[int, Any, WorkerMarket] | None = None
+
+    def state(self) -> dict[str, Any] | None:
+        """The saved state (steps, file names, incomes), or None where no run with these arguments was cut short."""
+        path = self.folder / "state.json"
+        return json.loads(path.read_text()) if path.is_file() else None
+
+    def resume(self, state: dict[str, Any]) -> None:
+        """Count the steps and incomes of ``state`` as done."""
+        self.done, self.history_before, self.learning_starts = state["steps"], state["history"], state["learning_starts"]
+
+    def hook(self, step: int, manager: Any, market: WorkerMarket) -> None:
+        """A :data:`StepHook`: remember the run's objects, and save every ``every`` steps."""
+        self.last = (step, manager, market)
+        if self.save_manager and self.learning_starts is None:
+            self.learning_starts = manager.learning_starts
+        if step % self.every == 0:
+            self.save()
+
+    @property
+    def steps(self) -> int:
+        """Env steps done, in this process and before it."""
+        return self.done + (self.last[0] if self.last else 0)
+
+    def history(self) -> list[dict[str, float]]:
+        """The incomes of every finished episode of the run."""
+        return self.history_before + (self.last[2].history if self.last else [])
+
+    def save(self) -> None:
+        """Save the run as it stands (nothing before its first step)."""
+        if self.last is None:
+            return
+        _, manager, market = self.last
+        steps, files = self.steps, {}
+        if self.save_manager:
+            files["manager"] = f"manager_{steps}.zip"
+            manager.save(self.folder / files["manager"])
+        files["workers"] = f"workers_{steps}"
+        market.workers.save(self.folder / files["workers"])
+        state = {"steps": steps, **files, "history": self.history(), "learning_starts": self.learning_starts}
+        atomic_write_text(self.folder / "state.json", json.dumps(state))
+        for old in self.folder.glob("*_*.*"):  # the files of earlier checkpoints
+            if old.stem not in {Path(name).stem for name in files.values()}:
+                old.unlink(missing_ok=True)
+
+    def clear(self) -> None:
+        """Remove the checkpoints of a run that finished."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The co-training command line."""
     from sb3_taskalloc.experiments.budgets import full_env_id
@@ -127,48 +226,52 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--conf-file", default=None, help=f"DDPG settings of new workers, YAML by env id (default: {DEFAULT_CONF})"
     )
+    parser.add_argument(
+        "--checkpoint-every", type=int, default=1000, help="env steps between checkpoints (the same command resumes)"
+    )
     return parser
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.timesteps < 1:
-        parser.error(f"--timesteps must be >= 1, got {args.timesteps}")
-    if args.conf_file is not None and not Path(args.conf_file).is_file():
-        parser.error(f"--conf-file {args.conf_file} does not exist")
-    conf_file = Path(args.conf_file) if args.conf_file else DEFAULT_CONF
-    out = writable_folder(args.out)  # before training: an unwritable folder must not cost a run
+def write_outputs(out: Path, manager: Any, workers: BiddingWorkers, history: list[dict[str, float]], title: str) -> list[Path]:
+    """The run's files in ``out``: the manager (when it learned), the workers and the incomes."""
+    written = []
+    if manager is not None:
+        manager.save(out / "manager.zip")
+        written.append(out / "manager.zip")
+    workers.save(out / "workers")
+    written += [out / "workers.zip", out / "workers.json"]
+    return written + save_history(history, out, title)
+
+
+def starting_point(args: argparse.Namespace, checkpoints: Checkpoints) -> tuple[Any, BiddingWorkers | None]:
+    """The manager and workers the run starts from: those of ``--manager`` and ``--workers``, or those of the
+    checkpoint of a run with the same arguments that was cut short."""
     from sb3_taskalloc.baselines import GreedyAllocator
     from sb3_taskalloc.two_stage_sac import TwoStageSAC
 
-    th.set_num_threads(1)
     manager: Any = None
     if args.manager == "greedy":
         manager = GreedyAllocator()
     elif args.manager != "learn":
         manager = TwoStageSAC.load(args.manager, buffer_size=1)
     workers = BiddingWorkers.load(args.workers, seed=args.seed) if args.workers else None
-    worker_kwargs = load_worker_config(conf_file, args.env) if conf_file.is_file() else {}
-    manager, market = co_train(
-        args.env,
-        args.timesteps,
-        manager,
-        workers,
-        train_workers=not args.freeze_workers,
-        train_manager=args.manager == "learn",
-        seed=args.seed,
-        worker_kwargs=worker_kwargs,
-        progress_bar=True,
-    )
-    written = []
-    if isinstance(manager, TwoStageSAC) and args.manager == "learn":
-        manager.save(out / "manager.zip")
-        written.append(out / "manager.zip")
-    market.workers.save(out / "workers")
-    written += [out / "workers.zip", out / "workers.json"]
-    written += save_history(market.history, out, f"{args.env}: manager ({args.manager}) and bidding workers")
-    last = market.history[-5:]
+    state = checkpoints.state()
+    if state is None:
+        return manager, workers
+    checkpoints.resume(state)
+    workers = BiddingWorkers.load(checkpoints.folder / state["workers"], seed=args.seed + checkpoints.done)
+    print(f"resuming from the checkpoint at step {checkpoints.done} of {args.timesteps} ({checkpoints.folder})")
+    if args.manager == "learn":
+        manager = TwoStageSAC.load(checkpoints.folder / state["manager"])
+        # Its replay buffer is not in the checkpoint: a new one fills for the warm-up before the updates go on.
+        manager.learning_starts = manager.num_timesteps + checkpoints.learning_starts
+        print(f"the manager's replay buffer starts empty: {checkpoints.learning_starts} warm-up steps before it trains again")
+    return manager, workers
+
+
+def report(history: list[dict[str, float]], written: list[Path]) -> None:
+    """Print the last episodes' mean incomes and the files written."""
+    last = history[-5:]
     if last:
         means = {
             k: float(np.mean([h[k] for h in last])) for k in ("manager_income", "worker_income", "total_income", "mean_bid")
@@ -177,6 +280,58 @@ def main(argv: list[str] | None = None) -> None:
     else:
         print("no episode ended within --timesteps: no incomes.csv or incomes.png")
     print("wrote " + ", ".join(str(p) for p in written))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.timesteps < 1 or args.checkpoint_every < 1:
+        parser.error(f"--timesteps and --checkpoint-every must be >= 1, got {args.timesteps}, {args.checkpoint_every}")
+    if args.conf_file is not None and not Path(args.conf_file).is_file():
+        parser.error(f"--conf-file {args.conf_file} does not exist")
+    conf_file = Path(args.conf_file) if args.conf_file else DEFAULT_CONF
+    out = writable_folder(args.out)  # before training: an unwritable folder must not cost a run
+    from sb3_taskalloc.experiments.budgets import config_key
+
+    th.set_num_threads(1)
+    learn = args.manager == "learn"
+    worker_kwargs = load_worker_config(conf_file, args.env) if conf_file.is_file() else {}
+    key = {k: v for k, v in vars(args).items() if k not in ("out", "conf_file", "checkpoint_every")}
+    checkpoints = Checkpoints(out / f"checkpoint_{config_key(key, worker_kwargs)}", args.checkpoint_every, learn)
+    manager, workers = starting_point(args, checkpoints)
+    title = f"{args.env}: manager ({args.manager}) and bidding workers"
+    try:
+        if args.timesteps > checkpoints.done:
+            manager, market = co_train(
+                args.env,
+                args.timesteps - checkpoints.done,
+                manager,
+                workers,
+                train_workers=not args.freeze_workers,
+                train_manager=learn,
+                seed=args.seed + checkpoints.done,
+                worker_kwargs=worker_kwargs,
+                progress_bar=True,
+                hook=checkpoints.hook,
+            )
+            workers = market.workers
+    except KeyboardInterrupt:
+        if checkpoints.last is None:
+            raise
+        _, manager, market = checkpoints.last
+        if learn:
+            manager.learning_starts = checkpoints.learning_starts
+        checkpoints.save()
+        written = write_outputs(out, manager if learn else None, market.workers, checkpoints.history(), title)
+        print(f"interrupted at step {checkpoints.steps} of {args.timesteps}: wrote " + ", ".join(map(str, written)))
+        print("the same command continues from there")
+        raise SystemExit(130) from None
+    if learn and checkpoints.learning_starts is not None:
+        manager.learning_starts = checkpoints.learning_starts
+    assert workers is not None
+    history = checkpoints.history()
+    report(history, write_outputs(out, manager if learn else None, workers, history, title))
+    checkpoints.clear()
 
 
 if __name__ == "__main__":

@@ -197,6 +197,8 @@ class BiddingWorkers:
         state = json.loads(path.with_suffix(".json").read_text())
         # The network's shape and the optimiser's settings are DDPG's own, saved in its zip (SB3 pickles them).
         data, _, _ = load_from_zip_file(path.with_suffix(".zip"), device=device)
+        if data is None:
+            raise ValueError(f"{path.with_suffix('.zip')} holds no DDPG settings: not saved by BiddingWorkers.save")
         workers = cls(
             state["n_resources"],
             state["bid_max"],
