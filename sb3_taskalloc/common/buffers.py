@@ -94,9 +94,43 @@ class TwoStageReplayBuffer(DictReplayBuffer):
         self.candidates = np.zeros((self.buffer_size, self.n_envs, M, N), dtype=bool)
         self.pick_steps = np.zeros((self.buffer_size, self.n_envs, M, N), dtype=index_dtype)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """The buffer's state with only its stored rows: the arrays are allocated for ``buffer_size`` transitions (2.3 GB
+        on RBF at the default size), and pickling them whole wrote that much for a buffer of a few hundred."""
+        state = self.__dict__.copy()
+        if self.full:
+            return state
+        sliced = []  # (attribute, key in a dict attribute or None)
+        for name, value in self.__dict__.items():
+            if isinstance(value, dict):
+                state[name] = dict(value)
+                for key, array in value.items():
+                    if self._row_array(array):
+                        state[name][key] = array[: self.pos]
+                        sliced.append((name, key))
+            elif self._row_array(value):
+                state[name] = value[: self.pos]
+                sliced.append((name, None))
+        state["_stored_rows"] = (self.pos, sliced)
+        return state
+
+    def _row_array(self, value: Any) -> bool:
+        """Whether ``value`` is one of the arrays with a row per transition."""
+        return isinstance(value, np.ndarray) and value.ndim >= 1 and len(value) == self.buffer_size
+
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "pick_rank" in state:  # a buffer pickled with ``pick_rank`` (steps from 0, −1: not picked) loads too
             state["pick_steps"] = state.pop("pick_rank") + 1
+        if "_stored_rows" in state:  # pickled with its stored rows only: the rest is allocated again, empty
+            rows, sliced = state.pop("_stored_rows")
+            for name, key in sliced:
+                stored = state[name] if key is None else state[name][key]
+                array = np.zeros((state["buffer_size"], *stored.shape[1:]), dtype=stored.dtype)
+                array[:rows] = stored
+                if key is None:
+                    state[name] = array
+                else:
+                    state[name][key] = array
         self.__dict__.update(state)
 
     def add(  # type: ignore[override]
