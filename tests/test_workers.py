@@ -266,7 +266,9 @@ def test_cli_resumes_after_a_kill_and_after_ctrl_c(tmp_path, monkeypatch, capsys
         cotrain.main(argv)
     (folder,) = tmp_path.glob("checkpoint_*")
     assert json.loads((folder / "state.json").read_text())["steps"] == 40
-    assert sorted(p.name for p in folder.iterdir()) == ["manager_40.zip", "state.json", "workers_40.json", "workers_40.zip"]
+    assert sorted(p.name for p in folder.iterdir()) == ["state.json", "step_40"]
+    saved = ["manager.zip", "manager_buffer.pkl", "workers.json", "workers.zip", "workers_buffer.pkl"]
+    assert sorted(p.name for p in (folder / "step_40").iterdir()) == saved
     stop_at(50, KeyboardInterrupt)
     with pytest.raises(SystemExit) as stopped:
         cotrain.main(argv)
@@ -274,11 +276,18 @@ def test_cli_resumes_after_a_kill_and_after_ctrl_c(tmp_path, monkeypatch, capsys
     out = capsys.readouterr().out
     assert "resuming from the checkpoint at step 40 of 60" in out and "interrupted at step 50 of 60" in out
     assert TwoStageSAC.load(tmp_path / "manager.zip").num_timesteps == 50  # what Ctrl-C stopped is saved
-    monkeypatch.setattr(cotrain.Checkpoints, "hook", hook)
+    assert sorted(p.name for p in folder.iterdir()) == ["state.json", "step_50"]
+    seen = []
+
+    def watching(self, *args):
+        hook(self, *args)
+        seen.append(args[1])
+
+    monkeypatch.setattr(cotrain.Checkpoints, "hook", watching)
     cotrain.main(argv)
     assert "resuming from the checkpoint at step 50 of 60" in capsys.readouterr().out
-    manager = TwoStageSAC.load(tmp_path / "manager.zip")
-    assert manager.num_timesteps == 60 and manager.learning_starts == 500  # its own warm-up, not the resumed one's
+    assert seen[-1].replay_buffer.size() == 60  # the resumed manager's buffer holds the steps before the checkpoint too
+    assert TwoStageSAC.load(tmp_path / "manager.zip").num_timesteps == 60
     assert not folder.exists()  # a finished run leaves no checkpoint
     cotrain.main([*argv[:-2], "--seed", "1", "--out", str(tmp_path)])  # other arguments: a new run
     assert "resuming" not in capsys.readouterr().out

@@ -35,7 +35,8 @@ class Manager(Protocol):
     ) -> tuple[np.ndarray, Any]: ...
 
 
-#: Called after every env step of :func:`co_train` with the steps done in that call, the manager and the market.
+#: Called after every env step of :func:`co_train` (a learning manager's: after every collection, its transitions
+#: stored) with the steps done in that call, the manager and the market.
 StepHook = Callable[[int, Any, WorkerMarket], None]
 
 
@@ -54,7 +55,8 @@ def run_manager(
 
 
 class _HookCallback(BaseCallback):
-    """Calls a :data:`StepHook` after every env step of a learning manager."""
+    """Calls a :data:`StepHook` after every collection of a learning manager (every env step at ``train_freq`` 1), once
+    its transitions are in the replay buffer (``_on_step`` comes before they are)."""
 
     def __init__(self, hook: StepHook, market: WorkerMarket) -> None:
         super().__init__()
@@ -64,8 +66,10 @@ class _HookCallback(BaseCallback):
         self.start = self.model.num_timesteps
 
     def _on_step(self) -> bool:
-        self.hook(self.model.num_timesteps - self.start, self.model, self.market)
         return True
+
+    def _on_rollout_end(self) -> None:
+        self.hook(self.model.num_timesteps - self.start, self.model, self.market)
 
 
 def co_train(
@@ -94,8 +98,7 @@ def co_train(
     :param manager_kwargs: TwoStageSAC keywords for a new manager
     :param worker_kwargs: :class:`BiddingWorkers` keywords for new workers
     :param progress_bar: SB3 progress bar for a learning manager
-    :param hook: called after every env step with the steps done in this call, the manager and the market (the CLI
-        saves its checkpoints from it)
+    :param hook: a :data:`StepHook` (the CLI saves its checkpoints from it)
     :return: the manager and the market (``market.history`` holds the per-episode incomes)
     """
     from sb3_taskalloc.two_stage_sac import TwoStageSAC
@@ -140,10 +143,10 @@ def save_history(history: list[dict[str, float]], folder: Path, title: str) -> l
 
 
 class Checkpoints:
-    """The CLI's checkpoints of one co-training run, in one folder per set of arguments: the learning manager (without
-    its replay buffer, 2 GB on RBF at the default size), the workers (without theirs) and the incomes of the finished
-    episodes. ``state.json``, written after the files it names, says which step they belong to, so a kill during a
-    save leaves the previous checkpoint in force.
+    """The CLI's checkpoints of one co-training run, in one folder per set of arguments: the learning manager and the
+    workers, each with its replay buffer, and the incomes of the finished episodes. Each checkpoint is a folder
+    ``step_<k>``; ``state.json``, written after it, names the one in force, so a kill during a save leaves the previous
+    one in force.
 
     :param folder: where they are kept
     :param every: env steps between checkpoints
@@ -154,24 +157,26 @@ class Checkpoints:
         self.folder, self.every, self.save_manager = folder, every, save_manager
         self.done = 0  # steps of the checkpoint this process resumed from
         self.history_before: list[dict[str, float]] = []
-        self.learning_starts: int | None = None  # the manager's own: a resumed one warms up again, its buffer new
         self.last: tuple[int, Any, WorkerMarket] | None = None
+        self.saved = 0  # the step of the last save in this process
 
     def state(self) -> dict[str, Any] | None:
-        """The saved state (steps, file names, incomes), or None where no run with these arguments was cut short."""
+        """The saved state (steps, incomes), or None where no run with these arguments was cut short."""
         path = self.folder / "state.json"
         return json.loads(path.read_text()) if path.is_file() else None
 
+    def path(self, name: str, steps: int | None = None) -> Path:
+        """The file ``name`` of the checkpoint at ``steps`` (default: the one resumed from)."""
+        return self.folder / f"step_{self.done if steps is None else steps}" / name
+
     def resume(self, state: dict[str, Any]) -> None:
         """Count the steps and incomes of ``state`` as done."""
-        self.done, self.history_before, self.learning_starts = state["steps"], state["history"], state["learning_starts"]
+        self.done, self.history_before = state["steps"], state["history"]
 
     def hook(self, step: int, manager: Any, market: WorkerMarket) -> None:
         """A :data:`StepHook`: remember the run's objects, and save every ``every`` steps."""
         self.last = (step, manager, market)
-        if self.save_manager and self.learning_starts is None:
-            self.learning_starts = manager.learning_starts
-        if step % self.every == 0:
+        if step - self.saved >= self.every:
             self.save()
 
     @property
@@ -187,18 +192,17 @@ class Checkpoints:
         """Save the run as it stands (nothing before its first step)."""
         if self.last is None:
             return
-        _, manager, market = self.last
-        steps, files = self.steps, {}
+        self.saved, manager, market = self.last
+        steps = self.steps
         if self.save_manager:
-            files["manager"] = f"manager_{steps}.zip"
-            manager.save(self.folder / files["manager"])
-        files["workers"] = f"workers_{steps}"
-        market.workers.save(self.folder / files["workers"])
-        state = {"steps": steps, **files, "history": self.history(), "learning_starts": self.learning_starts}
-        atomic_write_text(self.folder / "state.json", json.dumps(state))
-        for old in self.folder.glob("*_*.*"):  # the files of earlier checkpoints
-            if old.stem not in {Path(name).stem for name in files.values()}:
-                old.unlink(missing_ok=True)
+            manager.save(self.path("manager.zip", steps))
+            manager.save_replay_buffer(self.path("manager_buffer.pkl", steps))
+        market.workers.save(self.path("workers", steps))
+        market.workers.ddpg.save_replay_buffer(self.path("workers_buffer.pkl", steps))
+        atomic_write_text(self.folder / "state.json", json.dumps({"steps": steps, "history": self.history()}))
+        for old in self.folder.glob("step_*"):
+            if old.name != f"step_{steps}":
+                shutil.rmtree(old, ignore_errors=True)
 
     def clear(self) -> None:
         """Remove the checkpoints of a run that finished."""
@@ -259,13 +263,12 @@ def starting_point(args: argparse.Namespace, checkpoints: Checkpoints) -> tuple[
     if state is None:
         return manager, workers
     checkpoints.resume(state)
-    workers = BiddingWorkers.load(checkpoints.folder / state["workers"], seed=args.seed + checkpoints.done)
     print(f"resuming from the checkpoint at step {checkpoints.done} of {args.timesteps} ({checkpoints.folder})")
+    workers = BiddingWorkers.load(checkpoints.path("workers"), seed=args.seed + checkpoints.done)
+    workers.ddpg.load_replay_buffer(checkpoints.path("workers_buffer.pkl"))
     if args.manager == "learn":
-        manager = TwoStageSAC.load(checkpoints.folder / state["manager"])
-        # Its replay buffer is not in the checkpoint: a new one fills for the warm-up before the updates go on.
-        manager.learning_starts = manager.num_timesteps + checkpoints.learning_starts
-        print(f"the manager's replay buffer starts empty: {checkpoints.learning_starts} warm-up steps before it trains again")
+        manager = TwoStageSAC.load(checkpoints.path("manager.zip"))
+        manager.load_replay_buffer(checkpoints.path("manager_buffer.pkl"))
     return manager, workers
 
 
@@ -319,15 +322,11 @@ def main(argv: list[str] | None = None) -> None:
         if checkpoints.last is None:
             raise
         _, manager, market = checkpoints.last
-        if learn:
-            manager.learning_starts = checkpoints.learning_starts
         checkpoints.save()
         written = write_outputs(out, manager if learn else None, market.workers, checkpoints.history(), title)
         print(f"interrupted at step {checkpoints.steps} of {args.timesteps}: wrote " + ", ".join(map(str, written)))
         print("the same command continues from there")
         raise SystemExit(130) from None
-    if learn and checkpoints.learning_starts is not None:
-        manager.learning_starts = checkpoints.learning_starts
     assert workers is not None
     history = checkpoints.history()
     report(history, write_outputs(out, manager if learn else None, workers, history, title))
