@@ -316,3 +316,36 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
     model = TwoStageSAC.load(run.seed_path(0).with_name(run.seed_path(0).stem + "_best.zip"), device="cpu")
     assert np.mean(evaluation.episode_returns(model, run.env_id, validation)) == pytest.approx(values[best])
     assert evaluation.episode_returns(model, run.env_id, record["eval_seeds"]) == pytest.approx(record["best"])
+
+
+def test_a_seed_killed_after_training_is_evaluated_without_training_again(tmp_path, monkeypatch, short_branching,
+                                                                          short_episodes):
+    """The trained model and its record so far are saved before the evaluations (the per-step MILP's take minutes on
+    RBF): a seed stopped during them is evaluated from there, with the figures of a run that was not stopped."""
+    import json
+
+    from sb3_taskalloc.experiments import learn, learn_report
+
+    kwargs = {"n_envs": 1, "learning_starts": 5, "batch_size": 8, "gamma": 0.7, "policy_kwargs": {"hidden_dim": 16}}
+
+    def run(out: Path) -> Any:
+        return learn.LearnRun("EPT", seeds=1, steps=10, eval_episodes=2, eval_every=5, algo_kwargs=kwargs, planners=(),
+                              select_dagger=1, out=out)  # fmt: skip
+
+    whole = run(tmp_path / "whole").run_seed(0)
+    stopped = run(tmp_path / "stopped")
+    with monkeypatch.context() as patch:
+        patch.setattr(learn_report, "diagnose_record", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+        with pytest.raises(KeyboardInterrupt):
+            stopped.run_seed(0)
+    trained = stopped.seed_path(0).with_name(stopped.seed_path(0).stem + "_trained.json")
+    assert trained.exists() and trained.with_suffix(".zip").exists() and not stopped.seed_path(0).exists()
+    monkeypatch.setattr("sb3_taskalloc.TwoStageSAC.learn", lambda *a, **k: pytest.fail("a trained seed was trained again"))
+    monkeypatch.setattr("sb3_taskalloc.TwoStageSAC.distill_select", lambda *a, **k: pytest.fail("DAgger ran again"))
+    resumed = stopped.run_seed(0)
+
+    def figures(record: dict[str, Any]) -> str:  # the times of two runs differ
+        return json.dumps({k: v for k, v in record.items() if not k.endswith("seconds")}, sort_keys=True)
+
+    assert figures(resumed) == figures(whole) and resumed["train_seconds"] > 0
+    assert not trained.exists() and not trained.with_suffix(".zip").exists()  # the finished seed's files replace them

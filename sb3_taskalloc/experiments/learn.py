@@ -160,24 +160,41 @@ class LearnRun:
             return learn_report.complete_record(self, json.loads(path.read_text()), path)
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
-        seeds = eval_seeds(seed, self.eval_episodes)
-        found = self._finished_without_dagger(seed)
-        phase = "training" if found is None else "DAgger after its finished training"
-        self._say(f"seed {seed} ({seed - self.first_seed + 1} of {self.seeds}): {phase}")
-        model, record, curve = found if found is not None else self._train(seed, seeds)
-        if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
-            self._evaluate_best(model, curve, record, path)
-        if self.select_dagger:
-            self._dagger(model, seed, record, curve, path)
-        record["curve"] = curve.points
+        trained = path.with_name(path.stem + "_trained.json")  # the seed's training done, its evaluations not
+        if trained.exists() and trained.with_suffix(".zip").exists():
+            from sb3_taskalloc import TwoStageSAC
+
+            model, record = TwoStageSAC.load(trained.with_suffix(".zip"), device="cpu"), json.loads(trained.read_text())
+            self._say(f"seed {seed}: its training finished before")
+        else:
+            model, record = self._trained_model(seed, path)
+            model.save(trained.with_suffix(".zip"))  # before the record, whose presence says that both are whole
+            atomic_write_text(trained, json.dumps(record) + "\n")
         self._say(f"seed {seed}: evaluating the trained model, its stages, the diagnosis and the baselines")
+        seeds = record["eval_seeds"]
         record["trained"] = evaluation.episode_returns(model, self.env_id, seeds)
         record.update(stage_returns(model, self.env_id, seeds))  # which stage's learning the trained return owes to
         record.update(learn_report.diagnose_record(self, model, seed))
         record.update(self.baselines(seed))
         model.save(path.with_suffix(".zip"))
         atomic_write_text(path, json.dumps(record) + "\n")
+        trained.unlink()
+        trained.with_suffix(".zip").unlink()
         return record
+
+    def _trained_model(self, seed: int, path: Path) -> tuple[Any, dict[str, Any]]:
+        """Seed ``seed`` trained, its DAgger phase included, with its record so far (the untrained return, the curve,
+        the validation checkpoint's return)."""
+        found = self._finished_without_dagger(seed)
+        phase = "training" if found is None else "DAgger after its finished training"
+        self._say(f"seed {seed} ({seed - self.first_seed + 1} of {self.seeds}): {phase}")
+        model, record, curve = found if found is not None else self._train(seed, eval_seeds(seed, self.eval_episodes))
+        if curve.best is not None:  # the checkpoint the validation episodes pick, on the held-out episodes
+            self._evaluate_best(model, curve, record, path)
+        if self.select_dagger:
+            self._dagger(model, seed, record, curve, path)
+        record["curve"] = curve.points
+        return model, record
 
     def _say(self, what: str) -> None:
         """A line on the seed's phase where the phases show progress bars (one job)."""
