@@ -318,8 +318,9 @@ def test_learning_experiment_picks_the_best_checkpoint_on_validation_episodes(tm
     assert evaluation.episode_returns(model, run.env_id, record["eval_seeds"]) == pytest.approx(record["best"])
 
 
-def test_a_seed_killed_after_training_is_evaluated_without_training_again(tmp_path, monkeypatch, short_branching,
-                                                                          short_episodes):
+def test_a_seed_killed_after_training_is_evaluated_without_training_again(
+    tmp_path, monkeypatch, short_branching, short_episodes
+):
     """The trained model and its record so far are saved before the evaluations (the per-step MILP's take minutes on
     RBF): a seed stopped during them is evaluated from there, with the figures of a run that was not stopped."""
     import json
