@@ -291,3 +291,17 @@ def test_cli_resumes_after_a_kill_and_after_ctrl_c(tmp_path, monkeypatch, capsys
     assert not folder.exists()  # a finished run leaves no checkpoint
     cotrain.main([*argv[:-2], "--seed", "1", "--out", str(tmp_path)])  # other arguments: a new run
     assert "resuming" not in capsys.readouterr().out
+
+
+def test_co_training_returns_what_it_made_after_ctrl_c():
+    """Ctrl-C during co-training returns the manager it made and the market as they stand, with a warning, where the
+    exception would lose them (the caller holds neither)."""
+
+    def ctrl_c_at_7(step, manager, market):
+        if step == 7:
+            raise KeyboardInterrupt
+
+    kwargs = {"learning_starts": 3, "batch_size": 4, "policy_kwargs": {"hidden_dim": 16}}
+    with pytest.warns(UserWarning, match="interrupted"):
+        manager, market = co_train("TaskAlloc/RBF-v0", 50, seed=0, manager_kwargs=kwargs, hook=ctrl_c_at_7)
+    assert manager.num_timesteps == 7 and manager._n_updates > 0 and market.workers is not None

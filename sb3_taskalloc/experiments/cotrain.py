@@ -14,6 +14,7 @@ import argparse
 import csv
 import json
 import shutil
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
@@ -99,7 +100,8 @@ def co_train(
     :param worker_kwargs: :class:`BiddingWorkers` keywords for new workers
     :param progress_bar: SB3 progress bar for a learning manager
     :param hook: a :data:`StepHook` (the CLI saves its checkpoints from it)
-    :return: the manager and the market (``market.history`` holds the per-episode incomes)
+    :return: the manager and the market (``market.history`` holds the per-episode incomes); after Ctrl-C, as they
+        stand, with a warning
     """
     from sb3_taskalloc.two_stage_sac import TwoStageSAC
 
@@ -110,11 +112,14 @@ def co_train(
     elif isinstance(manager, TwoStageSAC):
         manager.set_env(market)
         manager.set_random_seed(seed)  # the market's episodes too: a manager loaded without an env has no seed for them
-    if isinstance(manager, TwoStageSAC) and train_manager:
-        callback = None if hook is None else _HookCallback(hook, market)
-        manager.learn(total_timesteps, callback=callback, progress_bar=progress_bar, reset_num_timesteps=False)
-    else:
-        run_manager(market, manager, total_timesteps, seed=seed, hook=hook)
+    try:
+        if isinstance(manager, TwoStageSAC) and train_manager:
+            callback = None if hook is None else _HookCallback(hook, market)
+            manager.learn(total_timesteps, callback=callback, progress_bar=progress_bar, reset_num_timesteps=False)
+        else:
+            run_manager(market, manager, total_timesteps, seed=seed, hook=hook)
+    except KeyboardInterrupt:  # a manager and workers made here would be lost with the exception
+        warnings.warn("co-training interrupted (Ctrl-C): the manager and the market are returned as they stand", stacklevel=2)
     return manager, market
 
 
@@ -303,30 +308,27 @@ def main(argv: list[str] | None = None) -> None:
     checkpoints = Checkpoints(out / f"checkpoint_{config_key(key, worker_kwargs)}", args.checkpoint_every, learn)
     manager, workers = starting_point(args, checkpoints)
     title = f"{args.env}: manager ({args.manager}) and bidding workers"
-    try:
-        if args.timesteps > checkpoints.done:
-            manager, market = co_train(
-                args.env,
-                args.timesteps - checkpoints.done,
-                manager,
-                workers,
-                train_workers=not args.freeze_workers,
-                train_manager=learn,
-                seed=args.seed + checkpoints.done,
-                worker_kwargs=worker_kwargs,
-                progress_bar=True,
-                hook=checkpoints.hook,
-            )
-            workers = market.workers
-    except KeyboardInterrupt:
-        if checkpoints.last is None:
-            raise
-        _, manager, market = checkpoints.last
+    if args.timesteps > checkpoints.done:
+        manager, market = co_train(
+            args.env,
+            args.timesteps - checkpoints.done,
+            manager,
+            workers,
+            train_workers=not args.freeze_workers,
+            train_manager=learn,
+            seed=args.seed + checkpoints.done,
+            worker_kwargs=worker_kwargs,
+            progress_bar=True,
+            hook=checkpoints.hook,
+        )
+        workers = market.workers
+    if checkpoints.steps < args.timesteps:  # stopped by Ctrl-C, which co_train turns into an early return
         checkpoints.save()
-        written = write_outputs(out, manager if learn else None, market.workers, checkpoints.history(), title)
-        print(f"interrupted at step {checkpoints.steps} of {args.timesteps}: wrote " + ", ".join(map(str, written)))
-        print("the same command continues from there")
-        raise SystemExit(130) from None
+        if checkpoints.last is not None:
+            written = write_outputs(out, manager if learn else None, market.workers, checkpoints.history(), title)
+            print(f"interrupted at step {checkpoints.steps} of {args.timesteps}: wrote " + ", ".join(map(str, written)))
+            print("the same command continues from there")
+        raise SystemExit(130)
     assert workers is not None
     history = checkpoints.history()
     report(history, write_outputs(out, manager if learn else None, workers, history, title))
