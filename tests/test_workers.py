@@ -225,6 +225,18 @@ def test_cli_checks_its_inputs_before_training(tmp_path, monkeypatch):
     blocker.write_text("")
     with pytest.raises(SystemExit, match="cannot write to --out"):
         main(["--manager", "greedy", "--out", str(blocker / "sub")])
+    bad_conf = tmp_path / "bad.yml"
+    bad_conf.write_text("TaskAlloc/RBF-v0:\n  learning_rat: 0.1\n")
+    for wrong in (
+        ["--manager", str(tmp_path / "nosuch.zip")],
+        ["--manager", "greedy", "--workers", str(tmp_path / "nosuch")],
+        ["--manager", "greedy", "--conf-file", str(bad_conf)],
+        ["--env", "Foo"],
+    ):
+        with pytest.raises(SystemExit) as refused:
+            main([*wrong, "--out", str(tmp_path / "o")])
+        assert refused.value.code == 2  # argparse's usage error, named, instead of a traceback from the run
+    assert not (tmp_path / "o").exists()
 
 
 def test_default_worker_config_does_not_depend_on_the_current_folder(tmp_path, monkeypatch):

@@ -24,6 +24,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import set_random_seed
 
+from sb3_taskalloc.common.save_util import check_saved_model
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text, writable_folder
 from sb3_taskalloc.experiments.plots import plot_incomes
 from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, load_worker_config, make_market
@@ -223,7 +224,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m sb3_taskalloc.workers",
         description=__doc__.split("\n\n")[0],
     )
-    parser.add_argument("--env", type=full_env_id, default="TaskAlloc/RBF-v0", help="TaskAlloc id (RBF or MT)")
+    import envs
+
+    parser.add_argument(
+        "--env", type=full_env_id, choices=sorted(envs.ENV_SPECS), default="TaskAlloc/RBF-v0", help="TaskAlloc id"
+    )
     parser.add_argument("--timesteps", type=int, default=20_000, help="env steps")
     parser.add_argument("--out", default="runs/workers", help="output folder (models, incomes.csv, incomes.png)")
     parser.add_argument("--seed", type=int, default=0)
@@ -297,13 +302,24 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--timesteps and --checkpoint-every must be >= 1, got {args.timesteps}, {args.checkpoint_every}")
     if args.conf_file is not None and not Path(args.conf_file).is_file():
         parser.error(f"--conf-file {args.conf_file} does not exist")
+    if args.manager not in ("learn", "greedy"):
+        try:
+            check_saved_model(args.manager, ["data", "policy.pth"])
+        except (OSError, ValueError) as error:
+            parser.error(f"--manager is neither learn, greedy nor a saved model: {error}")
+    missing = [str(Path(args.workers).with_suffix(s)) for s in (".zip", ".json")] if args.workers else []
+    if any(not Path(path).is_file() for path in missing):
+        parser.error(f"--workers {args.workers} needs {' and '.join(missing)}, as BiddingWorkers.save writes them")
     conf_file = Path(args.conf_file) if args.conf_file else DEFAULT_CONF
+    try:
+        worker_kwargs = load_worker_config(conf_file, args.env) if conf_file.is_file() else {}
+    except ValueError as error:
+        parser.error(str(error))
     out = writable_folder(args.out)  # before training: an unwritable folder must not cost a run
     from sb3_taskalloc.experiments.budgets import config_key
 
     th.set_num_threads(1)
     learn = args.manager == "learn"
-    worker_kwargs = load_worker_config(conf_file, args.env) if conf_file.is_file() else {}
     key = {k: v for k, v in vars(args).items() if k not in ("out", "conf_file", "checkpoint_every")}
     checkpoints = Checkpoints(out / f"checkpoint_{config_key(key, worker_kwargs)}", args.checkpoint_every, learn)
     manager, workers = starting_point(args, checkpoints)
