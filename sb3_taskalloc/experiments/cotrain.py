@@ -344,6 +344,8 @@ def main(argv: list[str] | None = None) -> None:
             written = write_outputs(out, manager if learn else None, market.workers, checkpoints.history(), title)
             print(f"interrupted at step {checkpoints.steps} of {args.timesteps}: wrote " + ", ".join(map(str, written)))
             print("the same command continues from there")
+        else:
+            print(f"interrupted before its first step here: the run stays at step {checkpoints.done} of {args.timesteps}")
         raise SystemExit(130)
     assert workers is not None
     history = checkpoints.history()
