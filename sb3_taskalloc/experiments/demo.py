@@ -147,16 +147,17 @@ def report(
         returns[name] = np.asarray(found, dtype=float)[sorted(range(len(which)), key=which.__getitem__)]  # paired order
         results[name] = (float(np.mean(returns[name])), float(np.std(returns[name])))
     # The paired per-episode gain of the trained policy over each, mean ± standard error.
-    paired = {}
+    paired: dict[str, list[float | None]] = {}
     for what, other in (("untrained", "TwoStageSAC untrained"), ("Greedy", "Greedy")):
         diff = returns["TwoStageSAC"] - returns[other]
-        paired[what] = [float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(diff.size))]
+        se = float(diff.std(ddof=1) / np.sqrt(diff.size)) if diff.size > 1 else None  # one episode has no spread
+        paired[what] = [float(diff.mean()), se]
     trained = f"trained {args.steps} steps + {args.dagger_iterations} DAgger iterations, {train_s:.0f} s"
     print(f"\n{args.env}: return over {args.eval_episodes} held-out episodes ({trained})")
     for name, (mean, std) in results.items():
         print(f"  {name:22s} {mean:9.1f} ± {std:.1f}")
-    for what, (mean, se) in paired.items():
-        print(f"  trained − {what} per episode: {mean:+.1f} ± {se:.1f} (s.e.)")
+    for what, (gain, se) in paired.items():
+        print(f"  trained − {what} per episode: {gain:+.1f}" + (f" ± {se:.1f} (s.e.)" if se is not None else " (one episode)"))
     ends = np.array([t for t, _ in ends_], dtype=float)
     end = rollouts[-1][0] if rollouts else args.steps
     n = args.eval_episodes
