@@ -178,8 +178,8 @@ class LearnRun:
         record.update(self.baselines(seed))
         model.save(path.with_suffix(".zip"))
         atomic_write_text(path, json.dumps(record) + "\n")
-        trained.unlink()
-        trained.with_suffix(".zip").unlink()
+        trained.unlink(missing_ok=True)
+        trained.with_suffix(".zip").unlink(missing_ok=True)
         return record
 
     def _trained_model(self, seed: int, path: Path) -> tuple[Any, dict[str, Any]]:
