@@ -172,10 +172,11 @@ def test_ddpg_config_blocks_build_workers(tmp_path):
         load_worker_config(bad, "TaskAlloc/RBF-v0")
 
 
-def test_cli_with_a_frozen_greedy_manager(tmp_path):
+def test_cli_with_a_frozen_greedy_manager(tmp_path, capsys):
     from sb3_taskalloc.workers import main  # the CLI entry point
 
     main(["--manager", "greedy", "--timesteps", "120", "--out", str(tmp_path), "--seed", "1"])
+    assert "co-training, manager frozen" in capsys.readouterr().err  # a progress bar, as a learning manager has
     rows = (tmp_path / "incomes.csv").read_text().strip().splitlines()
     assert len(rows) == 2 and rows[0].startswith("episode,manager_income,worker_income,total_income")
     assert (tmp_path / "incomes.png").stat().st_size > 0 and (tmp_path / "workers.zip").exists()

@@ -43,11 +43,18 @@ StepHook = Callable[[int, Any, WorkerMarket], None]
 
 
 def run_manager(
-    market: WorkerMarket, manager: Manager, total_timesteps: int, seed: int | None = None, hook: StepHook | None = None
+    market: WorkerMarket,
+    manager: Manager,
+    total_timesteps: int,
+    seed: int | None = None,
+    hook: StepHook | None = None,
+    progress_bar: bool = False,
 ) -> None:
     """Run a fixed (frozen) manager on the market for ``total_timesteps`` env steps (the workers learn if ``train``)."""
+    from tqdm.auto import tqdm
+
     obs, _ = market.reset(seed=seed)
-    for step in range(1, total_timesteps + 1):
+    for step in tqdm(range(1, total_timesteps + 1), desc="co-training, manager frozen", disable=not progress_bar):
         action, _ = manager.predict(obs, deterministic=True)
         obs, _, terminated, truncated, _ = market.step(action)
         if terminated or truncated:
@@ -99,7 +106,7 @@ def co_train(
     :param seed: seed of everything
     :param manager_kwargs: TwoStageSAC keywords for a new manager
     :param worker_kwargs: :class:`BiddingWorkers` keywords for new workers
-    :param progress_bar: SB3 progress bar for a learning manager
+    :param progress_bar: a progress bar (SB3's for a learning manager)
     :param hook: a :data:`StepHook` (the CLI saves its checkpoints from it)
     :return: the manager and the market (``market.history`` holds the per-episode incomes); after Ctrl-C, as they
         stand, with a warning
@@ -118,7 +125,7 @@ def co_train(
             callback = None if hook is None else _HookCallback(hook, market)
             manager.learn(total_timesteps, callback=callback, progress_bar=progress_bar, reset_num_timesteps=False)
         else:
-            run_manager(market, manager, total_timesteps, seed=seed, hook=hook)
+            run_manager(market, manager, total_timesteps, seed=seed, hook=hook, progress_bar=progress_bar)
     except KeyboardInterrupt:  # a manager and workers made here would be lost with the exception
         warnings.warn("co-training interrupted (Ctrl-C): the manager and the market are returned as they stand", stacklevel=2)
     return manager, market
