@@ -44,7 +44,8 @@ def test_learning_experiment_runs_the_zoo_blocks_dagger_callback(tmp_path, monke
 
 def test_learning_experiment_with_one_job_shows_the_seeds_phases(tmp_path, monkeypatch, capsys):
     """With one job (the default) the seed in progress says which phase it is in, and its training steps and DAgger
-    iterations show progress bars; without progress nothing is printed and no bar is asked for."""
+    iterations and its per-step MILP baseline show progress bars; without progress nothing is printed and no bar is asked
+    for."""
     from sb3_taskalloc import TwoStageSAC
     from sb3_taskalloc.experiments import learn
 
@@ -67,6 +68,7 @@ def test_learning_experiment_with_one_job_shows_the_seeds_phases(tmp_path, monke
         phases = ["Almighty learning, seed 0 (1 of 1): training", "Almighty learning, seed 0: evaluating the trained"]
         assert all((phase in printed.out) is progress for phase in phases), printed.out
         assert ("select-stage DAgger" in printed.err) is progress
+        assert ("Almighty seed 0: per-step MILP" in printed.err) is progress  # minutes a seed on RBF
 
 
 def test_learning_experiment_reports_no_critic_where_none_trained(tmp_path):

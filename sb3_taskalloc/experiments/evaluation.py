@@ -46,13 +46,22 @@ def validation_seeds(seed: int, episodes: int) -> list[int]:
     return [30_000 + 100 * seed + k for k in range(episodes)]
 
 
-def episode_returns(agent: Any, env_id: str, seeds: list[int], planner: Callable[[gym.Env], Any] | None = None) -> list[float]:
+def episode_returns(
+    agent: Any,
+    env_id: str,
+    seeds: list[int],
+    planner: Callable[[gym.Env], Any] | None = None,
+    progress: str | None = None,
+) -> list[float]:
     """Deterministic return of ``agent`` (anything with SB3's ``predict``) on one episode per reset seed.
 
     :param planner: builds the agent from the episode's env instead (the planners act in the env they clone)
+    :param progress: a progress bar over the episodes, with this label (None: none)
     """
+    from tqdm.auto import tqdm
+
     returns = []
-    for s in seeds:
+    for s in tqdm(seeds, desc=progress, disable=progress is None):
         env = gym.make(env_id)
         obs, _ = env.reset(seed=s)
         actor = planner(env) if planner is not None else agent
@@ -192,9 +201,12 @@ def baseline_returns(run: Any, seed: int) -> dict[str, Any]:
     path = Path(run.out) / run.env / f"baselines_seed_{seed}_{key}.json"
     done: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
 
+    def bar(name: str) -> str | None:  # the per-step MILP takes minutes on RBF: a bar where the run shows them
+        return f"{run.env} seed {seed}: {name}" if run.progress_bars else None
+
     def milp_returns() -> list[float]:
         milp = b.MILPAllocator.reference(run.milp_node_limit)
-        returns = episode_returns(milp, run.env_id, seeds)
+        returns = episode_returns(milp, run.env_id, seeds, progress=bar("per-step MILP"))
         done["MILP gap"] = milp.gap_summary()  # how far from optimal its allocations may be, filed beside them
         return returns
 
@@ -208,7 +220,9 @@ def baseline_returns(run: Any, seed: int) -> dict[str, Any]:
         def planner(env: gym.Env, cls: Any = cls) -> Any:
             return cls(env, seed=seed, **PLANNER_BUDGET)
 
-        agents[name] = lambda planner=planner: episode_returns(None, run.env_id, seeds, planner)  # type: ignore[misc]
+        agents[name] = lambda planner=planner, name=name: episode_returns(  # type: ignore[misc]
+            None, run.env_id, seeds, planner, progress=bar(name)
+        )
     for name, evaluate in agents.items():
         if name not in done:
             done[name] = evaluate()
