@@ -318,3 +318,22 @@ def test_co_training_returns_what_it_made_after_ctrl_c():
     with pytest.warns(UserWarning, match="interrupted"):
         manager, market = co_train("TaskAlloc/RBF-v0", 50, seed=0, manager_kwargs=kwargs, hook=ctrl_c_at_7)
     assert manager.num_timesteps == 7 and manager._n_updates > 0 and market.workers is not None
+
+
+def test_each_checkpoint_draws_the_incomes_so_far(tmp_path, monkeypatch):
+    """A long co-training run can be watched: every checkpoint writes the finished episodes' incomes and their figure,
+    and a kill leaves them in place."""
+    from sb3_taskalloc.experiments import cotrain
+
+    hook = cotrain.Checkpoints.hook
+
+    def killed_at_120(self, *args):
+        hook(self, *args)
+        if self.steps == 120:
+            raise RuntimeError
+
+    monkeypatch.setattr(cotrain.Checkpoints, "hook", killed_at_120)
+    with pytest.raises(RuntimeError):
+        cotrain.main(["--manager", "greedy", "--timesteps", "150", "--checkpoint-every", "110", "--out", str(tmp_path)])
+    rows = (tmp_path / "incomes.csv").read_text().strip().splitlines()
+    assert len(rows) == 2 and (tmp_path / "incomes.png").stat().st_size > 0  # RBF's first episode ended at step 100

@@ -159,15 +159,18 @@ class Checkpoints:
     """The CLI's checkpoints of one co-training run, in one folder per set of arguments: the learning manager and the
     workers, each with its replay buffer, and the incomes of the finished episodes. Each checkpoint is a folder
     ``step_<k>``; ``state.json``, written after it, names the one in force, so a kill during a save leaves the previous
-    one in force.
+    one in force. Each save also draws the incomes so far (``incomes.csv``, ``incomes.png`` in ``out``), to watch a long
+    run by.
 
     :param folder: where they are kept
     :param every: env steps between checkpoints
     :param save_manager: whether the manager learns, and so is saved
+    :param out: where the incomes so far are drawn
+    :param title: the figure's title
     """
 
-    def __init__(self, folder: Path, every: int, save_manager: bool) -> None:
-        self.folder, self.every, self.save_manager = folder, every, save_manager
+    def __init__(self, folder: Path, every: int, save_manager: bool, out: Path, title: str) -> None:
+        self.folder, self.every, self.save_manager, self.out, self.title = folder, every, save_manager, out, title
         self.done = 0  # steps of the checkpoint this process resumed from
         self.history_before: list[dict[str, float]] = []
         self.last: tuple[int, Any, WorkerMarket] | None = None
@@ -213,6 +216,7 @@ class Checkpoints:
         market.workers.save(self.path("workers", steps))
         market.workers.ddpg.save_replay_buffer(self.path("workers_buffer.pkl", steps))
         atomic_write_text(self.folder / "state.json", json.dumps({"steps": steps, "history": self.history()}))
+        save_history(self.history(), self.out, self.title)
         for old in self.folder.glob("step_*"):
             if old.name != f"step_{steps}":
                 shutil.rmtree(old, ignore_errors=True)
@@ -328,9 +332,9 @@ def main(argv: list[str] | None = None) -> None:
     th.set_num_threads(1)
     learn = args.manager == "learn"
     key = {k: v for k, v in vars(args).items() if k not in ("out", "conf_file", "checkpoint_every")}
-    checkpoints = Checkpoints(out / f"checkpoint_{config_key(key, worker_kwargs)}", args.checkpoint_every, learn)
-    manager, workers = starting_point(args, checkpoints)
     title = f"{args.env}: manager ({args.manager}) and bidding workers"
+    checkpoints = Checkpoints(out / f"checkpoint_{config_key(key, worker_kwargs)}", args.checkpoint_every, learn, out, title)
+    manager, workers = starting_point(args, checkpoints)
     if args.timesteps > checkpoints.done:
         manager, market = co_train(
             args.env,
