@@ -352,3 +352,53 @@ def test_a_seed_killed_after_training_is_evaluated_without_training_again(
 
     assert figures(resumed) == figures(whole) and resumed["train_seconds"] > 0
     assert not trained.exists() and not trained.with_suffix(".zip").exists()  # the finished seed's files replace them
+
+
+@pytest.mark.parametrize("n_envs", [1, 2])
+def test_a_seed_killed_in_training_goes_on_from_its_checkpoint_exactly(
+    tmp_path, monkeypatch, short_branching, short_episodes, n_envs
+):
+    """A seed's training is checkpointed (model, buffer, envs mid-episode, random generators, curve): killed after a
+    checkpoint, the seed goes on from it and its record repeats an unstopped run's to the digit."""
+    import json
+
+    from sb3_taskalloc.experiments import checkpoint, learn
+
+    kwargs = {"n_envs": n_envs, "learning_starts": 3, "batch_size": 8, "gamma": 0.7, "policy_kwargs": {"hidden_dim": 16}}
+
+    def run(out: Path) -> Any:
+        return learn.LearnRun("EPT", seeds=1, steps=16, eval_episodes=2, eval_every=6, algo_kwargs=kwargs, planners=(),
+                              select_dagger=0, out=out)  # fmt: skip
+
+    whole = run(tmp_path / "whole").run_seed(0)  # no checkpoint in so short a run
+    stopped = run(tmp_path / "stopped")
+    monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", 0.0)  # one at every collection
+    save = checkpoint.TrainingCheckpoint.save
+
+    def killed_after_step_8(self: Any) -> None:
+        save(self)
+        if self.model.num_timesteps >= 8:
+            raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(checkpoint.TrainingCheckpoint, "save", killed_after_step_8)
+        with pytest.raises(KeyboardInterrupt):
+            stopped.run_seed(0)
+    folder = stopped.training_folder(0)
+    assert json.loads((folder / "state.json").read_text())["step"] == "step_8" and not stopped.seed_path(0).exists()
+    resumed = stopped.run_seed(0)
+
+    def figures(record: dict[str, Any]) -> str:  # the times of two runs differ
+        return json.dumps({k: v for k, v in record.items() if not k.endswith("seconds")}, sort_keys=True)
+
+    assert figures(resumed) == figures(whole) and not folder.exists()
+    assert saved_weights(stopped.seed_path(0).with_suffix(".zip")) == saved_weights(
+        run(tmp_path / "whole").seed_path(0).with_suffix(".zip")
+    )
+
+
+def saved_weights(path: Path) -> list[list[float]]:
+    """The weights of a saved model, as lists to compare exactly."""
+    from sb3_taskalloc import TwoStageSAC
+
+    return [p.flatten().tolist() for p in TwoStageSAC.load(path, device="cpu").policy.state_dict().values()]

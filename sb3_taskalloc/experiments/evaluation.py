@@ -181,7 +181,8 @@ class Curve(BaseCallback):
         self.points.append((step, value))
 
     def _on_training_start(self) -> None:
-        self._evaluate()
+        if not self.points:  # a curve resumed from a checkpoint has its points, step 0's among them
+            self._evaluate()
 
     def _on_step(self) -> bool:
         # With n_envs envs the step count grows by n_envs per call: evaluate on passing each multiple of `every`.

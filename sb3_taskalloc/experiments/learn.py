@@ -28,6 +28,7 @@ import dataclasses
 import io
 import json
 import os
+import shutil
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -35,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_taskalloc.common.utils import atomic_write_text, check_counts
-from sb3_taskalloc.experiments import evaluation, learn_report, reevaluate
+from sb3_taskalloc.experiments import checkpoint, evaluation, learn_report, reevaluate
 from sb3_taskalloc.experiments.budgets import MILP_NODE_LIMIT, code_defaults, config_key, env_settings
 from sb3_taskalloc.experiments.evaluation import PLANNERS, Curve, eval_seeds, one_thread, validation_seeds
 
@@ -153,6 +154,10 @@ class LearnRun:
     def seed_path(self, seed: int) -> Path:
         return Path(self.out) / self.env / f"seed_{seed}_{self.key}.json"
 
+    def training_folder(self, seed: int) -> Path:
+        """The checkpoints of seed ``seed``'s training in progress (:mod:`.checkpoint`)."""
+        return self.seed_path(seed).with_name(self.seed_path(seed).stem + "_training")
+
     def run_seed(self, seed: int) -> dict[str, Any]:
         """Train and evaluate one seed (or read it back when it was finished before)."""
         path = self.seed_path(seed)
@@ -170,6 +175,7 @@ class LearnRun:
             model, record = self._trained_model(seed, path)
             model.save(trained.with_suffix(".zip"))  # before the record, whose presence says that both are whole
             atomic_write_text(trained, json.dumps(record) + "\n")
+            shutil.rmtree(self.training_folder(seed), ignore_errors=True)  # its checkpoints: the trained seed is saved
         self._say(f"seed {seed}: evaluating the trained model, its stages, the diagnosis and the baselines")
         seeds = record["eval_seeds"]
         record["trained"] = evaluation.episode_returns(model, self.env_id, seeds)
@@ -211,18 +217,31 @@ class LearnRun:
         and the training time) and the curve"""
         from sb3_taskalloc import TwoStageSAC
 
-        env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
-        model = TwoStageSAC("TAMPolicy", env, seed=seed, device=self.device, **hyperparameters)
-        record: dict[str, Any] = {
-            "seed": seed,
-            "eval_seeds": seeds,
-            "untrained": evaluation.episode_returns(model, self.env_id, seeds),
-            "machine": evaluation.machine(),  # where a seed's figures were measured, for comparing two records
-        }
         curve = self._curve(seed)
+        folder = self.training_folder(seed)
+        resumed = checkpoint.resume_training(folder, curve, self.device)
+        if resumed is not None:  # a kill stopped this seed's training: it goes on from its checkpoint, exactly
+            model, record, seconds = resumed
+            self._say(f"seed {seed}: training resumed at step {model.num_timesteps}")
+        else:
+            env, hyperparameters = training_env(self.env_id, self.hyperparameters, seed)
+            model = TwoStageSAC("TAMPolicy", env, seed=seed, device=self.device, **hyperparameters)
+            record = {
+                "seed": seed,
+                "eval_seeds": seeds,
+                "untrained": evaluation.episode_returns(model, self.env_id, seeds),
+                "machine": evaluation.machine(),  # where a seed's figures were measured, for comparing two records
+            }
+            seconds = 0.0
+        saving = checkpoint.TrainingCheckpoint(folder, curve, record, seconds)
         t0 = time.perf_counter()
-        model.learn(self.steps, callback=curve, progress_bar=self.progress_bars)
-        record["train_seconds"] = time.perf_counter() - t0  # the curve's evaluations included
+        model.learn(
+            self.steps - model.num_timesteps,
+            callback=[curve, saving],
+            progress_bar=self.progress_bars,
+            reset_num_timesteps=resumed is None,
+        )
+        record["train_seconds"] = seconds + time.perf_counter() - t0  # the curve's evaluations included
         record["curve_seconds"] = curve.seconds
         if self.device != "cpu":  # the evaluations decide one observation at a time, which is faster on the CPU
             buffer = io.BytesIO()
