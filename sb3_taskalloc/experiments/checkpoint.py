@@ -66,6 +66,7 @@ class TrainingCheckpoint(BaseCallback):
             self.last = time.perf_counter()
 
     def save(self) -> None:
+        """Save the training as it stands, as ``step_<env steps>``, and remove the checkpoints before it."""
         model: Any = self.model
         step = self.folder / f"step_{model.num_timesteps}"
         model.save(step / "model.zip")  # its last observations and episode starts too
