@@ -37,8 +37,8 @@ class Manager(Protocol):
     ) -> tuple[np.ndarray, Any]: ...
 
 
-#: Called after every env step of :func:`co_train` (a learning manager's: after every collection, its transitions
-#: stored) with the steps done in that call, the manager and the market.
+#: Called after every env step of :func:`co_train` (a learning manager's: before every collection, after the gradient
+#: steps of the one before) with the steps done in that call, the manager and the market.
 StepHook = Callable[[int, Any, WorkerMarket], None]
 
 
@@ -64,8 +64,8 @@ def run_manager(
 
 
 class _HookCallback(BaseCallback):
-    """Calls a :data:`StepHook` after every collection of a learning manager (every env step at ``train_freq`` 1), once
-    its transitions are in the replay buffer (``_on_step`` comes before they are)."""
+    """Calls a :data:`StepHook` before every collection of a learning manager (every env step at ``train_freq`` 1): the
+    previous collection's transitions are stored and its gradient steps done, so a save there is whole."""
 
     def __init__(self, hook: StepHook, market: WorkerMarket) -> None:
         super().__init__()
@@ -77,7 +77,7 @@ class _HookCallback(BaseCallback):
     def _on_step(self) -> bool:
         return True
 
-    def _on_rollout_end(self) -> None:
+    def _on_rollout_start(self) -> None:
         self.hook(self.model.num_timesteps - self.start, self.model, self.market)
 
 
@@ -197,8 +197,10 @@ class Checkpoints:
 
     @property
     def steps(self) -> int:
-        """Env steps done, in this process and before it."""
-        return self.done + (self.last[0] if self.last else 0)
+        """Env steps done, in this process and before it (a learning manager counts its own, up to the last one)."""
+        if self.last is None:
+            return self.done
+        return int(self.last[1].num_timesteps) if self.save_manager else self.done + self.last[0]
 
     def history(self) -> list[dict[str, float]]:
         """The incomes of every finished episode of the run."""
