@@ -261,3 +261,45 @@ def test_resume_over_a_broken_model_file(tmp_path, capsys):
     broken = list(path.parent.glob("*.broken-*.zip"))
     assert len(broken) == 1 and broken[0].read_bytes() == b"PK\x03\x04 cut short"
     assert "could not be loaded" in capsys.readouterr().out
+
+
+def test_a_model_killed_in_training_goes_on_from_its_checkpoint_exactly(tmp_path, monkeypatch):
+    """A table model's training is checkpointed as the learning experiment's seeds are: killed after a checkpoint, it
+    goes on from it to the same weights, and its Monitor logs are cut back to the checkpoint and logged on, row for row
+    those of an unstopped run."""
+    import torch as th
+
+    from sb3_taskalloc.experiments import checkpoint
+    from sb3_taskalloc.experiments.budgets import Budget
+
+    monkeypatch.setattr(Budget, "steps", lambda self, env, episodes: 48)  # 6 collections of the block's 8 envs
+
+    def table(out: Any) -> TableRun:
+        return TableRun("EPT", 1, "smoke", out, methods=["Ours"], progress=False)
+
+    whole = table(tmp_path / "whole").trained("Ours", 0)
+    stopped = table(tmp_path / "stopped")
+    monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", 0.0)  # one at every collection
+    save = checkpoint.TrainingCheckpoint.save
+
+    def killed_at_step_40(self: Any) -> None:  # the last checkpoint at step 24; the 4-step episodes end at step 32
+        if self.model.num_timesteps >= 40:
+            raise KeyboardInterrupt
+        if self.model.num_timesteps <= 24:
+            save(self)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(checkpoint.TrainingCheckpoint, "save", killed_at_step_40)
+        with pytest.raises(KeyboardInterrupt):
+            stopped.trained("Ours", 0)
+    resumed = stopped.trained("Ours", 0)
+    weights = zip(whole.policy.state_dict().values(), resumed.policy.state_dict().values(), strict=True)
+    assert all(th.equal(a, b) for a, b in weights)
+
+    def rows(out: Any) -> list[list[str]]:  # each env's episodes: return and length (not the wall-clock times)
+        logs = sorted((out / "EPT" / "logs").glob("*.monitor.csv"))
+        assert logs
+        return [[",".join(r.split(",")[:2]) for r in log.read_text().splitlines()[2:]] for log in logs]
+
+    assert rows(tmp_path / "stopped") == rows(tmp_path / "whole")
+    assert not list((tmp_path / "stopped").rglob("*_training"))

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.monitor import Monitor, ResultsWriter
 
 from sb3_taskalloc.common.utils import atomic_path, atomic_write_text
 from sb3_taskalloc.experiments.evaluation import Curve
@@ -25,6 +26,30 @@ from sb3_taskalloc.experiments.evaluation import Curve
 #: Wall-clock seconds between a seed's checkpoints: a kill loses at most this much of its training. A checkpoint
 #: writes the replay buffer's stored rows (23 KB a transition on RBF: 0.5 GB and under a second at 20,000).
 CHECKPOINT_SECONDS = 600.0
+
+
+class ResumableMonitor(Monitor):
+    """SB3's ``Monitor`` that a checkpoint can hold: pickled, it keeps its log file's name and the episodes it logged;
+    unpickled, it cuts the file back to them (a kill after the checkpoint logged more) and logs on after them."""
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        writer = state.pop("results_writer")
+        state["_log_file"] = None if writer is None else writer.file_handler.name
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        log_file = state.pop("_log_file")
+        self.__dict__.update(state)
+        self.results_writer = None
+        if log_file is not None:
+            path = Path(log_file)
+            # A JSON line and the header, then a row per episode logged by the checkpoint's time.
+            kept = path.read_text().splitlines(keepends=True)[: 2 + len(self.episode_returns)]
+            atomic_write_text(path, "".join(kept))
+            self.results_writer = ResultsWriter(
+                log_file, extra_keys=self.reset_keywords + self.info_keywords, override_existing=False
+            )
 
 
 def _random_state() -> dict[str, Any]:
@@ -47,14 +72,16 @@ class TrainingCheckpoint(BaseCallback):
     named by ``state.json`` once whole, so a kill during a save leaves the previous one in force).
 
     :param folder: the seed's checkpoint folder
-    :param curve: the seed's curve (its points and best weights are part of the checkpoint)
+    :param curve: the seed's curve, if any (its points and best weights are part of the checkpoint)
     :param record: the seed's record so far (the untrained return, the machine)
     :param seconds: the training seconds of the processes before this one
     """
 
-    def __init__(self, folder: Path, curve: Curve, record: dict[str, Any], seconds: float = 0.0) -> None:
+    def __init__(
+        self, folder: Path, curve: Curve | None = None, record: dict[str, Any] | None = None, seconds: float = 0.0
+    ) -> None:
         super().__init__()
-        self.folder, self.curve, self.record, self.seconds = folder, curve, record, seconds
+        self.folder, self.curve, self.record, self.seconds = folder, curve, record or {}, seconds
         self.started = self.last = time.perf_counter()
 
     def _on_step(self) -> bool:
@@ -77,7 +104,9 @@ class TrainingCheckpoint(BaseCallback):
                 {
                     "env": pickle.dumps(model.get_env()),  # the envs mid-episode, their random generators with them
                     "random": _random_state(),
-                    "curve": (self.curve.points, self.curve.best, self.curve.best_step, self.curve.seconds),
+                    "curve": None
+                    if self.curve is None
+                    else (self.curve.points, self.curve.best, self.curve.best_step, self.curve.seconds),
                 },
                 tmp,
             )
@@ -89,7 +118,7 @@ class TrainingCheckpoint(BaseCallback):
                 shutil.rmtree(old, ignore_errors=True)
 
 
-def resume_training(folder: Path, curve: Curve, device: str) -> tuple[Any, dict[str, Any], float] | None:
+def resume_training(folder: Path, curve: Curve | None, device: str) -> tuple[Any, dict[str, Any], float] | None:
     """The model of the last checkpoint in ``folder`` as it was saved, with ``curve`` and the random generators set back
     (call :meth:`learn` next), its record so far and its training seconds; None without a checkpoint."""
     from sb3_taskalloc import TwoStageSAC
@@ -102,7 +131,8 @@ def resume_training(folder: Path, curve: Curve, device: str) -> tuple[Any, dict[
     model = TwoStageSAC.load(step / "model.zip", env=pickle.loads(state["env"]), device=device, force_reset=False)
     with (step / "buffer.pkl").open("rb") as file:
         model.replay_buffer = pickle.load(file)
-    curve.points, curve.best, curve.best_step, curve.seconds = state["curve"]
+    if curve is not None:
+        curve.points, curve.best, curve.best_step, curve.seconds = state["curve"]
     saved = json.loads((step / "record.json").read_text())
     _set_random_state(state["random"])  # last: loading the model draws from them
     return model, saved["record"], saved["train_seconds"]

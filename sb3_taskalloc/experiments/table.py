@@ -25,6 +25,7 @@ import csv
 import io
 import os
 import pickle
+import shutil
 import time
 import zipfile
 from collections.abc import Callable
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from sb3_taskalloc.common.utils import atomic_path, check_choices
-from sb3_taskalloc.experiments import table_report
+from sb3_taskalloc.experiments import checkpoint, table_report
 from sb3_taskalloc.experiments.budgets import (
     BUDGETS,
     DAGGER_BUDGET,
@@ -242,15 +243,17 @@ class TableRun:
         return int(self._sac_kwargs().get("n_envs", 1)) if method.kind == "sac" else 1
 
     def _train_env(self, env_id: str, log: Path, n_envs: int) -> Any:
-        """A Monitor-wrapped env of ``env_id`` logging to ``log``, or with ``n_envs`` > 1 a DummyVecEnv of them."""
-        from stable_baselines3.common.monitor import Monitor
+        """A Monitor-wrapped env of ``env_id`` logging to ``log``, or with ``n_envs`` > 1 a DummyVecEnv of them (a
+        checkpoint of the training can hold them: :class:`.checkpoint.ResumableMonitor`)."""
         from stable_baselines3.common.vec_env import DummyVecEnv
 
+        from sb3_taskalloc.experiments.checkpoint import ResumableMonitor
+
         if n_envs == 1:
-            return Monitor(self.budget.make(env_id), filename=str(log))
+            return ResumableMonitor(self.budget.make(env_id), filename=str(log))
 
         def make(path: Path) -> Callable[[], Any]:
-            return lambda: Monitor(self.budget.make(env_id), filename=str(path))
+            return lambda: ResumableMonitor(self.budget.make(env_id), filename=str(path))
 
         return DummyVecEnv([make(path) for path in env_logs(log, n_envs)])
 
@@ -321,18 +324,23 @@ class TableRun:
         saved = self._load_saved(method, path)
         if saved is not None:
             return saved
-        model = self._new_model(method, env_id, seed, self._log_path(name, seed, row))
+        folder = path.with_name(path.stem + "_training")  # the training's checkpoints (TwoStageSAC's columns)
+        resumed = checkpoint.resume_training(folder, None, "auto") if method.kind == "sac" else None
+        # A kill stopped this model's training where a checkpoint is left: it goes on from there, exactly.
+        model = resumed[0] if resumed is not None else self._new_model(method, env_id, seed, self._log_path(name, seed, row))
         dagger = self._dagger(method)
-        callback = None
+        callbacks: list[Any] = [checkpoint.TrainingCheckpoint(folder)] if method.kind == "sac" else []
         if dagger:  # the zoo's schedule: the training steps, then the DAgger of the pointer
             from sb3_taskalloc import SelectDAggerCallback
             from sb3_taskalloc.two_stage_sac.decoding import recommended_decoder
 
             if dagger.get("teacher") == "recommended":  # the training env's decoder: a preset row may have none
                 dagger = {**dagger, "teacher": recommended_decoder(self._train_id)}
-            callback = SelectDAggerCallback(**dagger)
-        model.learn(self.budget.steps(self.env, self.budget.train_episodes), callback=callback)
+            callbacks.append(SelectDAggerCallback(**dagger))
+        steps = self.budget.steps(self.env, self.budget.train_episodes)
+        model.learn(steps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
         self._save(model, path)
+        shutil.rmtree(folder, ignore_errors=True)
         return model
 
     # ------------------------------------------------------------ cells
