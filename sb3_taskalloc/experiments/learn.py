@@ -161,11 +161,14 @@ class LearnRun:
     def run_seed(self, seed: int) -> dict[str, Any]:
         """Train and evaluate one seed (or read it back when it was finished before)."""
         path = self.seed_path(seed)
+        trained = path.with_name(path.stem + "_trained.json")  # the seed's training done, its evaluations not
         if path.exists():
+            for left in (trained, trained.with_suffix(".zip")):  # left by a kill between the seed's save and their removal
+                left.unlink(missing_ok=True)
+            shutil.rmtree(self.training_folder(seed), ignore_errors=True)
             return learn_report.complete_record(self, json.loads(path.read_text()), path)
         from sb3_taskalloc.experiments.diagnose import stage_returns
 
-        trained = path.with_name(path.stem + "_trained.json")  # the seed's training done, its evaluations not
         if trained.exists() and trained.with_suffix(".zip").exists():
             from sb3_taskalloc import TwoStageSAC
 

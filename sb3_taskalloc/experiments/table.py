@@ -322,9 +322,10 @@ class TableRun:
         assert env_id is not None
         path = self._model_path(name, seed, row)
         saved = self._load_saved(method, path)
-        if saved is not None:
-            return saved
         folder = path.with_name(path.stem + "_training")  # the training's checkpoints (TwoStageSAC's columns)
+        if saved is not None:
+            shutil.rmtree(folder, ignore_errors=True)  # left by a kill between the model's save and their removal
+            return saved
         resumed = checkpoint.resume_training(folder, None, "auto") if method.kind == "sac" else None
         # A kill stopped this model's training where a checkpoint is left: it goes on from there, exactly.
         model = resumed[0] if resumed is not None else self._new_model(method, env_id, seed, self._log_path(name, seed, row))
