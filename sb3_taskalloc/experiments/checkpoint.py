@@ -1,8 +1,9 @@
-"""Checkpoints of a seed's training in the learning experiment.
+"""Checkpoints of TwoStageSAC's training in the experiments: the learning experiment's seeds, the table's models.
 
 A checkpoint holds everything that decides how training goes on: the model with its last observations, its replay
-buffer, the envs mid-episode, the random generators and the curve. It is taken at the start of a collection, after the
-previous gradient step, so a seed resumed from it trains on exactly as it would have: its figures repeat to the digit.
+buffer, the envs mid-episode (their Monitor logs with them), the random generators and the curve. It is taken at the
+start of a collection, after the previous gradient step, so a model resumed from it trains on exactly as it would
+have: its figures repeat to the digit.
 """
 
 from __future__ import annotations
