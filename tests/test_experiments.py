@@ -263,7 +263,8 @@ def test_resume_over_a_broken_model_file(tmp_path, capsys):
     assert "could not be loaded" in capsys.readouterr().out
 
 
-def test_a_model_killed_in_training_goes_on_from_its_checkpoint_exactly(tmp_path, monkeypatch):
+@pytest.mark.parametrize(("method", "last_save", "kill"), [("Ours", 24, 40), ("MaskablePPO", 16, 32)])
+def test_a_model_killed_in_training_goes_on_from_its_checkpoint_exactly(tmp_path, monkeypatch, method, last_save, kill):
     """A table model's training is checkpointed as the learning experiment's seeds are: killed after a checkpoint, it
     goes on from it to the same weights, and its Monitor logs are cut back to the checkpoint and logged on, row for row
     those of an unstopped run."""
@@ -272,27 +273,27 @@ def test_a_model_killed_in_training_goes_on_from_its_checkpoint_exactly(tmp_path
     from sb3_taskalloc.experiments import checkpoint
     from sb3_taskalloc.experiments.budgets import Budget
 
-    monkeypatch.setattr(Budget, "steps", lambda self, env, episodes: 48)  # 6 collections of the block's 8 envs
+    monkeypatch.setattr(Budget, "steps", lambda self, env, episodes: 48)  # 6 collections of 8 envs; 3 of PPO's 16 steps
 
     def table(out: Any) -> TableRun:
-        return TableRun("EPT", 1, "smoke", out, methods=["Ours"], progress=False)
+        return TableRun("EPT", 1, "smoke", out, methods=[method], progress=False)
 
-    whole = table(tmp_path / "whole").trained("Ours", 0)
+    whole = table(tmp_path / "whole").trained(method, 0)
     stopped = table(tmp_path / "stopped")
     monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", 0.0)  # one at every collection
     save = checkpoint.TrainingCheckpoint.save
 
-    def killed_at_step_40(self: Any) -> None:  # the last checkpoint at step 24; the 4-step episodes end at step 32
-        if self.model.num_timesteps >= 40:
+    def killed(self: Any) -> None:  # episodes of 4 steps end between the last checkpoint and the kill
+        if self.model.num_timesteps >= kill:
             raise KeyboardInterrupt
-        if self.model.num_timesteps <= 24:
+        if self.model.num_timesteps <= last_save:
             save(self)
 
     with monkeypatch.context() as patch:
-        patch.setattr(checkpoint.TrainingCheckpoint, "save", killed_at_step_40)
+        patch.setattr(checkpoint.TrainingCheckpoint, "save", killed)
         with pytest.raises(KeyboardInterrupt):
-            stopped.trained("Ours", 0)
-    resumed = stopped.trained("Ours", 0)
+            stopped.trained(method, 0)
+    resumed = stopped.trained(method, 0)
     weights = zip(whole.policy.state_dict().values(), resumed.policy.state_dict().values(), strict=True)
     assert all(th.equal(a, b) for a, b in weights)
 

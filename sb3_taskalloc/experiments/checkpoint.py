@@ -98,8 +98,9 @@ class TrainingCheckpoint(BaseCallback):
         model: Any = self.model
         step = self.folder / f"step_{model.num_timesteps}"
         model.save(step / "model.zip")  # its last observations and episode starts too
-        with atomic_path(step / "buffer.pkl") as tmp, tmp.open("wb") as file:
-            pickle.dump(model.replay_buffer, file)  # streamed: a full RBF buffer is 2.3 GB
+        if hasattr(model, "replay_buffer"):  # an on-policy model's rollout buffer is empty before a collection
+            with atomic_path(step / "buffer.pkl") as tmp, tmp.open("wb") as file:
+                pickle.dump(model.replay_buffer, file)  # streamed: a full RBF buffer is 2.3 GB
         with atomic_path(step / "state.pt") as tmp:
             th.save(
                 {
@@ -119,9 +120,14 @@ class TrainingCheckpoint(BaseCallback):
                 shutil.rmtree(old, ignore_errors=True)
 
 
-def resume_training(folder: Path, curve: Curve | None, device: str) -> tuple[Any, dict[str, Any], float] | None:
+def resume_training(
+    folder: Path, curve: Curve | None, device: str, algorithm: Any = None
+) -> tuple[Any, dict[str, Any], float] | None:
     """The model of the last checkpoint in ``folder`` as it was saved, with ``curve`` and the random generators set back
-    (call :meth:`learn` next), its record so far and its training seconds; None without a checkpoint."""
+    (call :meth:`learn` next), its record so far and its training seconds; None without a checkpoint.
+
+    :param algorithm: the model's class (default: TwoStageSAC)
+    """
     from sb3_taskalloc import TwoStageSAC
 
     state_file = folder / "state.json"
@@ -129,9 +135,11 @@ def resume_training(folder: Path, curve: Curve | None, device: str) -> tuple[Any
         return None
     step = folder / json.loads(state_file.read_text())["step"]
     state = th.load(step / "state.pt", weights_only=False)
-    model = TwoStageSAC.load(step / "model.zip", env=pickle.loads(state["env"]), device=device, force_reset=False)
-    with (step / "buffer.pkl").open("rb") as file:
-        model.replay_buffer = pickle.load(file)
+    algorithm = TwoStageSAC if algorithm is None else algorithm
+    model = algorithm.load(step / "model.zip", env=pickle.loads(state["env"]), device=device, force_reset=False)
+    if (step / "buffer.pkl").exists():
+        with (step / "buffer.pkl").open("rb") as file:
+            model.replay_buffer = pickle.load(file)
     if curve is not None:
         curve.points, curve.best, curve.best_step, curve.seconds = state["curve"]
     saved = json.loads((step / "record.json").read_text())

@@ -262,18 +262,27 @@ class TableRun:
         with atomic_path(path) as tmp:
             model.save(tmp)
 
+    @staticmethod
+    def _algorithm(method: Method) -> Any:
+        """The class of ``method``'s models: MaskablePPO or TwoStageSAC."""
+        from sb3_contrib import MaskablePPO
+
+        from sb3_taskalloc import TwoStageSAC
+
+        return MaskablePPO if method.kind == "ppo" else TwoStageSAC
+
     def _new_model(self, method: Method, env_id: str, seed: int, log: Path) -> Any:
-        from stable_baselines3.common.monitor import Monitor
         from stable_baselines3.common.vec_env import DummyVecEnv
 
         from sb3_taskalloc import TwoStageSAC
+        from sb3_taskalloc.experiments.checkpoint import ResumableMonitor
         from sb3_taskalloc.two_stage_sac.policies import starts_at_rule
 
         log.parent.mkdir(parents=True, exist_ok=True)
         if method.kind == "ppo":
             from sb3_contrib import MaskablePPO
 
-            vec = DummyVecEnv([lambda: Monitor(self.budget.make(env_id), filename=str(log))])
+            vec = DummyVecEnv([lambda: ResumableMonitor(self.budget.make(env_id), filename=str(log))])
             return MaskablePPO("MultiInputPolicy", vec, seed=seed, **self.budget.ppo)
         kwargs = self._sac_kwargs()
         env = self._train_env(env_id, log, int(kwargs.pop("n_envs", 1)))
@@ -293,11 +302,7 @@ class TableRun:
         the env's first reset, the sampling and the network updates after loading are seeded (the few-shot training)."""
         env = self._train_env(env_id, log, self._n_envs(method)) if env_id and log else None
         env = seeded_vec_env(env, seed) if env is not None and seed is not None else env
-        from sb3_contrib import MaskablePPO
-
-        from sb3_taskalloc import TwoStageSAC
-
-        model = (MaskablePPO if method.kind == "ppo" else TwoStageSAC).load(path, env=env)
+        model = self._algorithm(method).load(path, env=env)
         if seed is not None:
             model.set_random_seed(seed)
         return model
@@ -322,15 +327,15 @@ class TableRun:
         assert env_id is not None
         path = self._model_path(name, seed, row)
         saved = self._load_saved(method, path)
-        folder = path.with_name(path.stem + "_training")  # the training's checkpoints (TwoStageSAC's columns)
+        folder = path.with_name(path.stem + "_training")  # the training's checkpoints
         if saved is not None:
             shutil.rmtree(folder, ignore_errors=True)  # left by a kill between the model's save and their removal
             return saved
-        resumed = checkpoint.resume_training(folder, None, "auto") if method.kind == "sac" else None
+        resumed = checkpoint.resume_training(folder, None, "auto", self._algorithm(method))
         # A kill stopped this model's training where a checkpoint is left: it goes on from there, exactly.
         model = resumed[0] if resumed is not None else self._new_model(method, env_id, seed, self._log_path(name, seed, row))
         dagger = self._dagger(method)
-        callbacks: list[Any] = [checkpoint.TrainingCheckpoint(folder)] if method.kind == "sac" else []
+        callbacks: list[Any] = [checkpoint.TrainingCheckpoint(folder)]
         if dagger:  # the zoo's schedule: the training steps, then the DAgger of the pointer
             from sb3_taskalloc import SelectDAggerCallback
             from sb3_taskalloc.two_stage_sac.decoding import recommended_decoder
