@@ -304,3 +304,52 @@ def test_a_model_killed_in_training_goes_on_from_its_checkpoint_exactly(tmp_path
 
     assert rows(tmp_path / "stopped") == rows(tmp_path / "whole")
     assert not list((tmp_path / "stopped").rglob("*_training"))
+
+
+def test_a_few_shot_training_killed_goes_on_from_its_checkpoint_exactly(tmp_path, monkeypatch):
+    """The few-shot rows' further training is checkpointed too: killed, it goes on to the weights of an unstopped run."""
+    import torch as th
+
+    from sb3_taskalloc.experiments import checkpoint
+    from sb3_taskalloc.experiments.budgets import Budget
+
+    monkeypatch.setattr(Budget, "steps", lambda self, env, episodes: 48)  # training, then 48 more on the preset
+
+    def few_shot(out: Any) -> Any:
+        run = TableRun("EPT", 1, "smoke", out, methods=["Ours"], progress=False)
+        run.cell("Ours", "few-shot (entity)", 0)
+        return load_sac(run._model_path("Ours", 0, "few-shot (entity)"))
+
+    whole = few_shot(tmp_path / "whole")
+    monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", 0.0)
+    save = checkpoint.TrainingCheckpoint.save
+
+    def killed(self: Any) -> None:  # in the few-shot training (its steps count on from the trained model's 48)
+        if self.model.num_timesteps >= 88:
+            raise KeyboardInterrupt
+        if self.model.num_timesteps <= 72:
+            save(self)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(checkpoint.TrainingCheckpoint, "save", killed)
+        with pytest.raises(KeyboardInterrupt):
+            few_shot(tmp_path / "stopped")
+    resume, found = checkpoint.resume_training, []
+
+    def recorded(*args: Any) -> Any:
+        back = resume(*args)
+        found.append(None if back is None else back[0].num_timesteps)
+        return back
+
+    monkeypatch.setattr(checkpoint, "resume_training", recorded)
+    resumed = few_shot(tmp_path / "stopped")
+    assert found[-1] == 72  # the few-shot training went on from its checkpoint
+    assert resumed.num_timesteps == whole.num_timesteps == 96
+    weights = zip(whole.policy.state_dict().values(), resumed.policy.state_dict().values(), strict=True)
+    assert all(th.equal(a, b) for a, b in weights)
+
+
+def load_sac(path: Any) -> Any:
+    from sb3_taskalloc import TwoStageSAC
+
+    return TwoStageSAC.load(path, device="cpu")

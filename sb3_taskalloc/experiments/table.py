@@ -390,10 +390,24 @@ class TableRun:
         log = self._log_path(name, seed, row)
         tuned = self._load_saved(method, path)
         if tuned is None:
-            tuned = self._load(method, self._model_path(name, seed), env_id, log, seed=seed)
-            tuned.learn(self.budget.steps(self.env, self.budget.few_shot_episodes), reset_num_timesteps=False)
-            self._save(tuned, path)
+            tuned = self._few_shot(method, name, seed, env_id, path, log)
         return f"{evaluate(tuned, env_id, budget, seed, method):.6g}"
+
+    def _few_shot(self, method: Method, name: str, seed: int, env_id: str, path: Path, log: Path) -> Any:
+        """The trained model of ``name`` trained on for the few-shot episodes on ``env_id``, checkpointed as
+        :meth:`trained` is (the checkpoint's record holds the step it ends at), and saved at ``path``."""
+        folder = path.with_name(path.stem + "_training")
+        resumed = checkpoint.resume_training(folder, None, "auto", self._algorithm(method))
+        if resumed is not None:
+            tuned, record, _ = resumed
+        else:
+            tuned = self._load(method, self._model_path(name, seed), env_id, log, seed=seed)
+            record = {"end": tuned.num_timesteps + self.budget.steps(self.env, self.budget.few_shot_episodes)}
+        saving = checkpoint.TrainingCheckpoint(folder, record=record)
+        tuned.learn(record["end"] - tuned.num_timesteps, callback=saving, reset_num_timesteps=False)
+        self._save(tuned, path)
+        shutil.rmtree(folder, ignore_errors=True)
+        return tuned
 
     def run(self) -> Path:
         """Compute every missing cell, then write the table and the curves; :return: the table's Markdown path."""
