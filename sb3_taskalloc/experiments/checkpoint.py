@@ -53,6 +53,20 @@ class ResumableMonitor(Monitor):
             )
 
 
+def training_folder(path: Path) -> Path:
+    """The folder of the checkpoints of the training whose model is saved at ``path`` when it ends."""
+    return path.with_name(path.stem + "_training")
+
+
+def keep_only(folder: Path, step: Path, state: dict[str, Any]) -> None:
+    """Name ``step``, a whole checkpoint folder in ``folder``, as the one in force (``state.json``, with ``state``), then
+    remove the others: a kill before the name is written leaves the previous checkpoint in force."""
+    atomic_write_text(folder / "state.json", json.dumps({**state, "step": step.name}))
+    for old in folder.glob("step_*"):
+        if old != step:
+            shutil.rmtree(old, ignore_errors=True)
+
+
 def _random_state() -> dict[str, Any]:
     state = {"torch": th.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
     if th.cuda.is_available():
@@ -99,8 +113,7 @@ class TrainingCheckpoint(BaseCallback):
         step = self.folder / f"step_{model.num_timesteps}"
         model.save(step / "model.zip")  # its last observations and episode starts too
         if hasattr(model, "replay_buffer"):  # an on-policy model's rollout buffer is empty before a collection
-            with atomic_path(step / "buffer.pkl") as tmp, tmp.open("wb") as file:
-                pickle.dump(model.replay_buffer, file)  # streamed: a full RBF buffer is 2.3 GB
+            model.save_replay_buffer(step / "buffer.pkl")
         with atomic_path(step / "state.pt") as tmp:
             th.save(
                 {
@@ -114,10 +127,7 @@ class TrainingCheckpoint(BaseCallback):
             )
         seconds = self.seconds + time.perf_counter() - self.started
         atomic_write_text(step / "record.json", json.dumps({"record": self.record, "train_seconds": seconds}))
-        atomic_write_text(self.folder / "state.json", json.dumps({"step": step.name}))
-        for old in self.folder.glob("step_*"):
-            if old != step:
-                shutil.rmtree(old, ignore_errors=True)
+        keep_only(self.folder, step, {})
 
 
 def resume_training(
@@ -138,8 +148,7 @@ def resume_training(
     algorithm = TwoStageSAC if algorithm is None else algorithm
     model = algorithm.load(step / "model.zip", env=pickle.loads(state["env"]), device=device, force_reset=False)
     if (step / "buffer.pkl").exists():
-        with (step / "buffer.pkl").open("rb") as file:
-            model.replay_buffer = pickle.load(file)
+        model.load_replay_buffer(step / "buffer.pkl")
     if curve is not None:
         curve.points, curve.best, curve.best_step, curve.seconds = state["curve"]
     saved = json.loads((step / "record.json").read_text())

@@ -25,7 +25,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_taskalloc.common.save_util import check_saved_model
-from sb3_taskalloc.common.utils import atomic_path, atomic_write_text, writable_folder
+from sb3_taskalloc.common.utils import atomic_path, writable_folder
+from sb3_taskalloc.experiments.checkpoint import keep_only
 from sb3_taskalloc.experiments.plots import plot_incomes
 from sb3_taskalloc.market import BiddingWorkers, WorkerMarket, load_worker_config, make_market
 from sb3_taskalloc.zoo_config import config_path
@@ -181,9 +182,13 @@ class Checkpoints:
         path = self.folder / "state.json"
         return json.loads(path.read_text()) if path.is_file() else None
 
+    def step_folder(self, steps: int) -> Path:
+        """The folder of the checkpoint at ``steps``."""
+        return self.folder / f"step_{steps}"
+
     def path(self, name: str, steps: int | None = None) -> Path:
         """The file ``name`` of the checkpoint at ``steps`` (default: the one resumed from)."""
-        return self.folder / f"step_{self.done if steps is None else steps}" / name
+        return self.step_folder(self.done if steps is None else steps) / name
 
     def resume(self, state: dict[str, Any]) -> None:
         """Count the steps and incomes of ``state`` as done."""
@@ -217,11 +222,9 @@ class Checkpoints:
             manager.save_replay_buffer(self.path("manager_buffer.pkl", steps))
         market.workers.save(self.path("workers", steps))
         market.workers.ddpg.save_replay_buffer(self.path("workers_buffer.pkl", steps))
-        atomic_write_text(self.folder / "state.json", json.dumps({"steps": steps, "history": self.history()}))
-        save_history(self.history(), self.out, self.title)
-        for old in self.folder.glob("step_*"):
-            if old.name != f"step_{steps}":
-                shutil.rmtree(old, ignore_errors=True)
+        history = self.history()
+        keep_only(self.folder, self.step_folder(steps), {"steps": steps, "history": history})
+        save_history(history, self.out, self.title)
 
     def clear(self) -> None:
         """Remove the checkpoints of a run that finished."""

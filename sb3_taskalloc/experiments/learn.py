@@ -156,7 +156,7 @@ class LearnRun:
 
     def training_folder(self, seed: int) -> Path:
         """The checkpoints of seed ``seed``'s training in progress (:mod:`.checkpoint`)."""
-        return self.seed_path(seed).with_name(self.seed_path(seed).stem + "_training")
+        return checkpoint.training_folder(self.seed_path(seed))
 
     def run_seed(self, seed: int) -> dict[str, Any]:
         """Train and evaluate one seed (or read it back when it was finished before)."""

@@ -327,15 +327,11 @@ class TableRun:
         assert env_id is not None
         path = self._model_path(name, seed, row)
         saved = self._load_saved(method, path)
-        folder = path.with_name(path.stem + "_training")  # the training's checkpoints
         if saved is not None:
-            shutil.rmtree(folder, ignore_errors=True)  # left by a kill between the model's save and their removal
+            shutil.rmtree(checkpoint.training_folder(path), ignore_errors=True)  # left by a kill after the model's save
             return saved
-        resumed = checkpoint.resume_training(folder, None, "auto", self._algorithm(method))
-        # A kill stopped this model's training where a checkpoint is left: it goes on from there, exactly.
-        model = resumed[0] if resumed is not None else self._new_model(method, env_id, seed, self._log_path(name, seed, row))
         dagger = self._dagger(method)
-        callbacks: list[Any] = [checkpoint.TrainingCheckpoint(folder)]
+        callbacks: list[Any] = []
         if dagger:  # the zoo's schedule: the training steps, then the DAgger of the pointer
             from sb3_taskalloc import SelectDAggerCallback
             from sb3_taskalloc.two_stage_sac.decoding import recommended_decoder
@@ -344,7 +340,28 @@ class TableRun:
                 dagger = {**dagger, "teacher": recommended_decoder(self._train_id)}
             callbacks.append(SelectDAggerCallback(**dagger))
         steps = self.budget.steps(self.env, self.budget.train_episodes)
-        model.learn(steps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
+        return self._learn_resumably(
+            method, path, lambda: self._new_model(method, env_id, seed, self._log_path(name, seed, row)), steps, callbacks
+        )
+
+    def _learn_resumably(
+        self, method: Method, path: Path, start: Callable[[], Any], steps: int, callbacks: list[Any] | None = None
+    ) -> Any:
+        """``steps`` env steps of training of the model ``start`` makes, checkpointed (:mod:`.checkpoint`; the
+        checkpoint's record holds the step the training ends at), then saved at ``path``. A training that a kill stopped
+        goes on from its last checkpoint, exactly.
+
+        :param callbacks: callbacks of the training besides the checkpoints (DAgger after it)
+        """
+        folder = checkpoint.training_folder(path)
+        resumed = checkpoint.resume_training(folder, None, "auto", self._algorithm(method))
+        if resumed is not None:
+            model, record, _ = resumed
+        else:
+            model = start()
+            record = {"end": model.num_timesteps + steps}
+        saving = checkpoint.TrainingCheckpoint(folder, record=record)
+        model.learn(record["end"] - model.num_timesteps, callback=[saving, *(callbacks or [])], reset_num_timesteps=False)
         self._save(model, path)
         shutil.rmtree(folder, ignore_errors=True)
         return model
@@ -390,24 +407,11 @@ class TableRun:
         log = self._log_path(name, seed, row)
         tuned = self._load_saved(method, path)
         if tuned is None:
-            tuned = self._few_shot(method, name, seed, env_id, path, log)
+            few_shot = self.budget.steps(self.env, self.budget.few_shot_episodes)
+            tuned = self._learn_resumably(
+                method, path, lambda: self._load(method, self._model_path(name, seed), env_id, log, seed=seed), few_shot
+            )
         return f"{evaluate(tuned, env_id, budget, seed, method):.6g}"
-
-    def _few_shot(self, method: Method, name: str, seed: int, env_id: str, path: Path, log: Path) -> Any:
-        """The trained model of ``name`` trained on for the few-shot episodes on ``env_id``, checkpointed as
-        :meth:`trained` is (the checkpoint's record holds the step it ends at), and saved at ``path``."""
-        folder = path.with_name(path.stem + "_training")
-        resumed = checkpoint.resume_training(folder, None, "auto", self._algorithm(method))
-        if resumed is not None:
-            tuned, record, _ = resumed
-        else:
-            tuned = self._load(method, self._model_path(name, seed), env_id, log, seed=seed)
-            record = {"end": tuned.num_timesteps + self.budget.steps(self.env, self.budget.few_shot_episodes)}
-        saving = checkpoint.TrainingCheckpoint(folder, record=record)
-        tuned.learn(record["end"] - tuned.num_timesteps, callback=saving, reset_num_timesteps=False)
-        self._save(tuned, path)
-        shutil.rmtree(folder, ignore_errors=True)
-        return tuned
 
     def run(self) -> Path:
         """Compute every missing cell, then write the table and the curves; :return: the table's Markdown path."""
