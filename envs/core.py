@@ -14,7 +14,7 @@ from gymnasium import spaces
 
 from envs.arrival import Arrival, make_arrival
 from envs.dynamics import TaskAllocDynamics
-from envs.geometry import Travel, travel_step
+from envs.geometry import Travel, static_tower_costs, travel_step
 from envs.layout import ObsLayout
 from envs.rendering import RenderSnapshot, render_ansi, render_rgb
 from envs.tables import EntityTable, TaskTable, clone
@@ -180,6 +180,7 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
         self._task_rows = tasks.rows * self.reward_scale
         self._eye = np.vstack([np.eye(M), np.zeros((1, M))])  # row M (= row -1) is "no task"
         self._entity_index = np.arange(N)
+        self._tower_tables = static_tower_costs(self._pos0, self._wire, tasks.towers, travel)
         self._arrival: Arrival = make_arrival(arrival, len(tasks.rows), tasks.towers, self.arrival_count, grid_size)
         self._state_ready = False
 
@@ -206,7 +207,7 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
         b = check_bids(bids, self.n_entities, self.max_entities, self.bid_max)
         self._bid[:] = 0.0
         self._bid[: b.shape[0]] = b
-        self._geom_dirty = True
+        self._geom_dirty = self._entities_dirty = True
 
     def observe(self) -> dict[str, np.ndarray]:
         """The current observation, e.g. after :meth:`set_bids` changed the pair costs between two steps."""
@@ -267,7 +268,7 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
         self._last_choice = (a, valid)  # the action as applied (for rendering), see :meth:`applied_action`
 
         # Commit: the pair cost is fixed when the entity is assigned.
-        idx = np.flatnonzero(valid)
+        idx = valid.nonzero()[0]
         if idx.size:
             self._assigned[idx] = a[idx]
             self._charge[idx] = self._pc[idx, a[idx]]
@@ -276,14 +277,15 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
         # Entities at their task's cell work; the others move one cell towards it.
         if self.travel != "none":
             _, arrived = travel_step(self._pos, self._tpos[self._assigned], committed, self.travel)
-            self._geom_dirty = True
+            self._geom_dirty = self._entities_dirty = True
             working = np.where(arrived, self._assigned, -1)
         else:
             working = self._assigned
         onehot = self._eye[working]
         contrib = onehot.T @ self._supply
         # Occupied tasks always have a positive demand, so covering it implies some arrived supply.
-        complete = self._occupied & (contrib >= self._demand - EPS).all(1) & contrib.any(1)
+        covered = np.logical_and.reduce(contrib >= self._demand - EPS, axis=1)
+        complete = self._occupied & covered & np.logical_or.reduce(contrib, axis=1)
 
         rewards, costs, n_complete, income, settled = self._complete(complete, committed)
         if not self.busy:  # never busy: assignments last one step
@@ -296,7 +298,7 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
             self._arrive()
 
         exhausted = self._arrival.exhausted() and not self._occupied.any()
-        terminated = self.one_step or not self._alive.any() or exhausted
+        terminated = self.one_step or not np.count_nonzero(self._alive) or exhausted
         obs = self._obs()
         commitment = rewards - costs - settled + self._settle_credits(bool(terminated))
         info = self._info(n_complete, rewards, costs, n_invalid, income, commitment)
@@ -308,6 +310,7 @@ class TaskAllocEnv(TaskAllocDynamics, gym.Env):
     _SHARED: ClassVar[frozenset[str]] = frozenset(
         {"entities", "tasks", "observation_space", "action_space", "layout", "metadata", "spec"}
         | {"_cost0", "_supply0", "_pos0", "_wire", "_present0", "_eye", "_task_rows", "_entity_index"}
+        | {"_tower_tables"}
     )
 
     def __deepcopy__(self, memo: dict[int, Any]) -> TaskAllocEnv:

@@ -1,6 +1,10 @@
 """The state mechanics of :class:`~envs.core.TaskAllocEnv`: its episode state, task arrivals, the quantities derived
 from the state (distances, pair costs, remaining demand, masks), completions, decay and the commitment reward's
 credits. ``TaskAllocEnv`` holds the API (spaces, reset, step, observation, rendering) on top of them.
+
+These run at every step of every rollout on arrays of tens of rows, where NumPy's Python-level wrappers cost more than
+the work: "is any set" is ``np.count_nonzero``, row reductions call the ufuncs' ``reduce``, and index lists come from
+``.nonzero()`` (the envs' step rate, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ class TaskAllocDynamics:
     _state_ready: bool
     _pc: np.ndarray
     _dist: np.ndarray | None
+    _tower_tables: tuple[np.ndarray, np.ndarray] | None
 
     # ------------------------------------------------------------------ state
 
@@ -67,13 +72,14 @@ class TaskAllocDynamics:
         self._credited = np.zeros(M, dtype=bool)
         self._open_ext = np.zeros(M + 1, dtype=bool)
         self._dist: np.ndarray | None = None
-        self._geom_dirty = True
+        self._geom_dirty = True  # pair costs: positions, task slots or bids changed
+        self._entities_dirty = True  # entity features: positions, supplies, presence or bids changed
         self._state_ready = True
 
     # ------------------------------------------------------------ arrivals
 
     def _free_slots(self) -> np.ndarray:
-        return np.flatnonzero(~self._occupied)
+        return (~self._occupied).nonzero()[0]
 
     def _arrive(self) -> None:
         state = ArrivalState(self.np_random, len(self._free_slots()), self._tower[self._occupied], self._alive)
@@ -109,14 +115,21 @@ class TaskAllocDynamics:
     def _refresh(self) -> None:
         """Recompute the derived quantities (distances, pair costs, remaining demand, masks) after a state change."""
         committed = self._assigned >= 0
-        onehot = self._eye[self._assigned]  # (N, M); row -1 of the padded identity is zero for free entities
-        rem = np.maximum(self._demand - onehot.T @ self._supply, 0.0)  # empty slots have zero demand
+        if np.count_nonzero(committed):
+            onehot = self._eye[self._assigned]  # (N, M); row -1 of the padded identity is zero for free entities
+            rem = np.maximum(self._demand - onehot.T @ self._supply, 0.0)  # empty slots have zero demand
+        else:  # nothing committed (EPT after every step): the whole demand remains
+            rem = self._demand.copy()
         free = self._alive & ~committed
         if self.tasks.towers is not None:
             free[self._tower[self._occupied]] = False  # a tower at peak demand cannot supply
         if self._geom_dirty:  # positions, task slots or bids changed since the last refresh
             base = self._bid if self.bidding else self._cost0
-            if self.has_positions:
+            if self._tower_tables is not None:  # EPT: towers never move, so each slot's column is its tower's
+                dist, costs = self._tower_tables
+                self._dist = dist[:, self._tower]  # column -1 (an empty slot) is the origin's
+                self._pc = base[:, None] + costs[:, self._tower]
+            elif self.has_positions:
                 self._dist = distances(self._pos, self._tpos, self.travel)
                 wire = self._wire if self.tasks.towers is not None else None
                 self._pc = pair_costs(base, self._dist, self.travel_cost, wire, self._tower)
@@ -125,11 +138,14 @@ class TaskAllocDynamics:
                 self._pc = np.repeat(base[:, None], self.max_tasks, axis=1)
             # Observation pieces that only change with the geometry (padded rows and empty slots are zero).
             self._pc_obs = (self._pc * (self._present0[:, None] & self._occupied[None, :])).astype(np.float32)
-            self._ef_static = self.layout.entity_features(base * self._alive, self._supply, self._pos, self._bid)
             self._geom_dirty = False
+        if self._entities_dirty:
+            base = self._bid if self.bidding else self._cost0
+            self._ef_static = self.layout.entity_features(base * self._alive, self._supply, self._pos, self._bid)
+            self._entities_dirty = False
         self._rem = rem
         self._free = free
-        self._open = self._occupied & (rem > EPS).any(1)
+        self._open = self._occupied & np.logical_or.reduce(rem > EPS, axis=1)
         self._open_ext[: self.max_tasks] = self._open  # indexed by an action: "unassigned" (M) is never a task
         self._committed = committed
 
@@ -139,26 +155,28 @@ class TaskAllocDynamics:
         """Pay the tasks ``complete`` and release their teams (used up when ``consume``), free their slots and give
         EPT's task towers back. :return: the rewards, the charges, the number of tasks, each entity's income, and the
         credits of these tasks that the commitment reward already counted"""
-        income = np.zeros(self.max_entities)
-        if not complete.any():
-            return 0.0, 0.0, 0, income, 0.0
+        n_complete = int(np.count_nonzero(complete))
+        if not n_complete:
+            return 0.0, 0.0, 0, np.zeros(self.max_entities), 0.0
         team = committed & complete[self._assigned]
         income = self._charge * team
-        rewards, costs, n_complete = float(self._reward @ complete), float(income.sum()), int(complete.sum())
+        rewards, costs = float(self._reward @ complete), float(income.sum())
         settled = float(self._credit @ complete)
-        self._credit *= ~complete
-        self._credited &= ~complete
+        keep = ~complete
+        self._credit *= keep
+        self._credited &= keep
         if self.consume:
             self._alive &= ~team
             self._supply[team] = 0.0
+            self._entities_dirty = True
         self._assigned[team] = -1
         self._charge[team] = 0.0
-        self._occupied &= ~complete
-        keep = ~complete
+        self._occupied &= keep
         self._reward *= keep
-        self._demand *= keep[:, None]
-        self._base_demand *= keep[:, None]
-        self._tpos *= keep[:, None]
+        keep_rows = keep[:, None]
+        self._demand *= keep_rows
+        self._base_demand *= keep_rows
+        self._tpos *= keep_rows
         self._geom_dirty = True
         self._age *= keep
         self._tower[complete] = -1
@@ -173,9 +191,10 @@ class TaskAllocDynamics:
             decaying = self._age > self.decay_after
             if not self.decay_while_committed:
                 decaying &= np.bincount(self._assigned[self._assigned >= 0], minlength=M) == 0
-            factor = np.where(decaying, self.decay, 1.0)
-            self._reward *= factor
-            self._base_demand *= factor[:, None]
+            if np.count_nonzero(decaying):  # a factor of 1 everywhere changes nothing
+                factor = np.where(decaying, self.decay, 1.0)
+                self._reward *= factor
+                self._base_demand *= factor[:, None]
         if self.demand_noise > 0:
             noise = self.np_random.uniform(1 - self.demand_noise, 1 + self.demand_noise, size=(M, 1))
             np.multiply(self._base_demand, noise, out=self._demand)
@@ -187,17 +206,23 @@ class TaskAllocDynamics:
         each task that is closed (covered by committed entities) and not yet credited, − the credit of a task that
         reopened, and at termination − every credit still unpaid, so that an episode's commitment rewards sum to its
         return."""
-        M = self.max_tasks
-        committed = self._assigned >= 0
-        charges = np.bincount(self._assigned[committed], weights=self._charge[committed], minlength=M)
         new = self._occupied & ~self._open & ~self._credited
-        profit = np.where(new, self._reward - charges, 0.0)
-        refund = self._credited & (self._open | ~self._occupied)
-        self._credit += profit
-        self._credited |= new
+        if np.count_nonzero(new):
+            committed = self._assigned >= 0
+            charges = np.bincount(self._assigned[committed], weights=self._charge[committed], minlength=self.max_tasks)
+            profit = np.where(new, self._reward - charges, 0.0)
+            refund = self._credited & (self._open | ~self._occupied)
+            self._credit += profit
+            self._credited |= new
+            profit_total = profit.sum()
+        elif np.count_nonzero(self._credited):  # nothing closes this step: only refunds can move
+            refund = self._credited & (self._open | ~self._occupied)
+            profit_total = 0.0
+        else:  # nothing closes and nothing is owed (EPT's every step)
+            return 0.0
         if terminated:
             refund |= self._credited
-        total = float(profit.sum() - self._credit @ refund)
+        total = float(profit_total - self._credit @ refund)
         self._credit *= ~refund
         self._credited &= ~refund
         return total

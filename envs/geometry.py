@@ -55,3 +55,19 @@ def pair_costs(
     if wire is not None:
         return base[:, None] + dist * (0.5 * (wire[:, None] + wire[task_entity]))
     return base[:, None] + travel_cost * dist
+
+
+def static_tower_costs(
+    entity_pos: np.ndarray, wire: np.ndarray, towers: np.ndarray | None, travel: Travel
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """When tasks are towers that never move (EPT), every distance and wire charge :func:`pair_costs` can need, computed
+    once: (N, N + 1) arrays whose column t is tower t and whose last column is an empty slot's (the origin, the last
+    entity's wire, as :func:`pair_costs` sees it there), so that a step indexes them by the slots' towers (−1: empty).
+
+    :return: the distances and the pair costs less the base cost, or None when tasks are not static towers
+    """
+    if towers is None or travel != "none":
+        return None
+    cells = np.vstack([entity_pos, np.zeros((1, 2))])
+    dist = distances(entity_pos, cells, travel)
+    return dist, dist * (0.5 * (wire[:, None] + np.append(wire, wire[-1])))

@@ -104,7 +104,7 @@ def check_action(action: Any, n_entities: int, n_tasks: int) -> np.ndarray:
     """
     N, M = n_entities, n_tasks
     if type(action) is np.ndarray and action.dtype == np.int64 and action.shape == (N,):  # fast path
-        if action.min() < 0 or action.max() > M:
+        if action.view(np.uint64).max() > M:  # one pass: a negative value reads as a huge unsigned one
             raise ValueError(
                 f"action values must lie in [0, {M}] (M = {M} means 'unassigned'), got [{action.min()}, {action.max()}]"
             )

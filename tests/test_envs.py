@@ -396,3 +396,27 @@ def test_commitment_reward_sums_to_the_return(env_id):
     unpaid = 0.0 if terminated else float(env.unwrapped._credit.sum())
     assert credited - unpaid == pytest.approx(paid, abs=1e-6)
     assert early or env_id in ("TaskAlloc/EPT-v0", "TaskAlloc/Almighty-v0")  # with travel the credit comes first
+
+
+@pytest.mark.parametrize("bidding", [False, True])
+def test_ept_tower_tables_equal_the_pair_cost_formula(bidding):
+    """EPT's pair costs and distances come from tables computed once (its towers never move); at every step they
+    equal, to the bit, what the general formula computes from the slots' cells, empty slots included."""
+    from envs.geometry import distances, pair_costs
+
+    env = make("TaskAlloc/EPT-v0", bidding=bidding)
+    assert env._tower_tables is not None and make("TaskAlloc/RBF-v0")._tower_tables is None
+    obs, _ = env.reset(seed=1)
+    rng = np.random.default_rng(0)
+    empty_seen = 0
+    for _ in range(80):
+        if bidding:
+            env.set_bids(rng.uniform(0.0, env.bid_max, env.n_entities))
+            obs = env.observe()
+        dist = distances(env._pos, env._tpos, env.travel)
+        base = env._bid if bidding else env._cost0
+        np.testing.assert_array_equal(env._dist, dist)
+        np.testing.assert_array_equal(env._pc, pair_costs(base, dist, env.travel_cost, env._wire, env._tower))
+        empty_seen += int((env._tower < 0).sum())
+        obs, *_ = env.step(random_valid_action(obs, rng))
+    assert empty_seen > 0  # the empty slots' column was checked too
