@@ -47,7 +47,10 @@ class TaskAllocDynamics:
     _state_ready: bool
     _pc: np.ndarray
     _dist: np.ndarray | None
-    _tower_tables: tuple[np.ndarray, np.ndarray] | None
+    # Class-level defaults, so that an env pickled before these attributes existed (in a training checkpoint) steps on:
+    # it takes the general pair-cost formula and rebuilds its entity features at its next observation.
+    _tower_tables: tuple[np.ndarray, np.ndarray] | None = None
+    _entities_dirty: bool = True
 
     # ------------------------------------------------------------------ state
 

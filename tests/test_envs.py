@@ -420,3 +420,29 @@ def test_ept_tower_tables_equal_the_pair_cost_formula(bidding):
         empty_seen += int((env._tower < 0).sum())
         obs, *_ = env.step(random_valid_action(obs, rng))
     assert empty_seen > 0  # the empty slots' column was checked too
+
+
+def test_an_env_pickled_before_the_step_tables_steps_on():
+    """A training checkpoint pickles its envs; one written before the EPT tables and the entity-features flag existed
+    unpickles without them and steps exactly as the env it was."""
+    import pickle
+
+    env = make("TaskAlloc/EPT-v0")
+    obs, _ = env.reset(seed=2)
+    for _ in range(5):
+        obs, *_ = env.step(random_valid_action(obs, np.random.default_rng(5)))
+    state = env.__dict__.copy()
+    old = copy.copy(env)
+    old.__dict__ = {k: v for k, v in state.items() if k not in ("_tower_tables", "_entities_dirty")}
+    old = pickle.loads(pickle.dumps(old))
+    assert "_tower_tables" not in old.__dict__
+    traces = []
+    for e in (env, old):
+        rng = np.random.default_rng(7)
+        o, trace, rewards = obs, [], []
+        for _ in range(30):
+            o, r, *_ = e.step(random_valid_action(o, rng))
+            trace.append(o)
+            rewards.append(r)
+        traces.append((trace, rewards))
+    assert same_trace(traces[0][0], traces[1][0]) and traces[0][1] == traces[1][1]
