@@ -182,3 +182,42 @@ def test_cover_imitation_loss_as_a_set():
     th.testing.assert_close(as_set, -set_log_p[labelled].mean(), atol=1e-4, rtol=1e-5)
     assert float(as_set.detach()) <= float(before.detach()) + 1e-6
     assert float(losses.cover_imitation_loss(head, round_view, task_of, found.rank, th.zeros_like(labelled), True)) == 0.0
+
+
+def test_distill_select_weighs_the_cover_against_the_rollouts_own_decode():
+    """Labelling compares each round's exact cover with the decode the rollout made (the argmax decoder keeps it)
+    instead of decoding the round again: the kept decodes equal fresh decodes of the recorded rounds, and DAgger's
+    figures and pointer equal those of a run that decodes every round again (a decoder of the same decisions that is
+    not the argmax class itself)."""
+    from sb3_taskalloc.two_stage_sac.dagger import _rollout_decision
+    from sb3_taskalloc.two_stage_sac.decoding import Decoder
+    from sb3_taskalloc.two_stage_sac.select_stage import decode_round, task_profit
+
+    env_id = "TaskAlloc/Almighty-v0"
+
+    def new_model() -> TwoStageSAC:
+        return TwoStageSAC("TAMPolicy", env_id, seed=0, device="cpu", policy_kwargs={"hidden_dim": 16, "rounds": 2})
+
+    model = new_model()
+    view = reset_view(model, env_id, 6)
+    with th.inference_mode():
+        action, rounds, decodes = _rollout_decision(model, view, None)
+        assert th.equal(action, model.policy.decide(view, deterministic=True).env_action)
+        assert len(rounds) == len(decodes) == 2
+        for (observed, task_of), kept in zip(rounds, decodes, strict=True):
+            assert kept is not None
+            fresh = decode_round(model.selector.head, model.policy.select_view(observed), task_of, deterministic=True)
+            assert th.equal(kept.rank, fresh.rank) and th.equal(kept.profit, task_profit(fresh))
+        assert all(d is None for d in _rollout_decision(model, view, lambda v: v)[2])  # a teacher's costs: decoded there
+
+    class SameArgmax(Decoder):
+        pass
+
+    dagger = {"iterations": 2, "episodes": 6, "epochs": 2, "seed": 0}
+    kept_model, again = new_model(), new_model()
+    again.set_decoder(SameArgmax())
+    history = kept_model.distill_select(env_id, **dagger)
+    assert history[0]["labelled_tasks"] > 0 and again.distill_select(env_id, **dagger) == history
+    pairs = zip(kept_model.policy.selector.state_dict().items(), again.policy.selector.state_dict().values(), strict=True)
+    for (name, p), q in pairs:
+        assert th.equal(p, q), name

@@ -21,7 +21,8 @@ from sb3_taskalloc.common.torch_layers import ObsView
 from sb3_taskalloc.common.utils import check_choices, check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.decoding import Decoder, recommended_decoder
 from sb3_taskalloc.two_stage_sac.policies import check_spaces
-from sb3_taskalloc.two_stage_sac.search import cover_search
+from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState, task_profit
 from sb3_taskalloc.two_stage_sac.updates import optimizer_step
 
 if TYPE_CHECKING:
@@ -35,6 +36,36 @@ class _CoverLabel(NamedTuple):
     task_of: th.Tensor  # (1, N) the round's candidate sets
     rank: th.Tensor  # (1, M, N) each task's labelled team in pick order
     labelled: th.Tensor  # (1, M) tasks whose team is a label
+
+
+class _KeptDecodes(Decoder):
+    """The argmax decoder that keeps every round's decode, so that labelling compares the exact cover with the decode
+    the rollout made rather than decoding the round again (a third of the labelling's decodes)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._decodes: list[SelectState] = []
+
+    def teams(self, policy: Any, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        st = policy.select_round(view, task_of, deterministic=True)
+        self._decodes.append(st)
+        return st.rank, st.kept()
+
+
+def _rollout_decision(
+    model: TwoStageSAC, view: ObsView, costed: Callable[[ObsView], ObsView] | None
+) -> tuple[th.Tensor, list[tuple[ObsView, th.Tensor]], list[SelectSearchResult | None]]:
+    """The deterministic policy's decision of a rollout step, its decoding rounds, and per round the decode to weigh the
+    exact cover against (:func:`.cover_search`'s ``against``): the rollout's own where the policy decides by the argmax
+    and the label is weighed on the pointer's costs, else None (decoded there)."""
+    rounds: list[tuple[ObsView, th.Tensor]] = []
+    if costed is not None or type(model.policy.decoder) is not Decoder:
+        action = model.policy.decide(view, deterministic=True, rounds_out=rounds).env_action
+        return action, rounds, [None] * len(rounds)
+    kept = _KeptDecodes()
+    action = kept.decide(model.policy, view, rounds).env_action
+    profits = [task_profit(st) for st in kept._decodes]
+    return action, rounds, [SelectSearchResult(st.rank, p, p) for st, p in zip(kept._decodes, profits, strict=True)]
 
 
 def learn_callbacks(zoo: Sequence[Any], callback: MaybeCallback, progress_bar: bool) -> tuple[MaybeCallback, bool]:
@@ -190,13 +221,12 @@ def _label_rollouts(
     running = np.zeros(vec_env.num_envs)
     totals = dict.fromkeys(("steps", "rounds", "tasks", "labelled_tasks", "improved", "gain"), 0.0)
     while len(returns) < episodes:
-        rounds: list[tuple[ObsView, th.Tensor]] = []
         with th.inference_mode():
             view = model.policy.parse(model.policy.obs_to_tensor(obs)[0])
-            action = model.policy.decide(view, deterministic=True, rounds_out=rounds).env_action
-            for observed, task_of in rounds:
+            action, rounds, decodes = _rollout_decision(model, view, costed)
+            for (observed, task_of), decoded in zip(rounds, decodes, strict=True):
                 round_view = model.policy.select_view(observed)
-                found = cover_search(head, round_view if costed is None else costed(observed), task_of)
+                found = cover_search(head, round_view if costed is None else costed(observed), task_of, against=decoded)
                 slots = th.arange(found.profit.shape[1], device=task_of.device).view(1, -1, 1)
                 has = (task_of.unsqueeze(1) == slots).any(-1)  # (B, M) tasks with candidates
                 labelled = has & (found.profit > 0)  # a kept team: an abandoned decode teaches nothing
