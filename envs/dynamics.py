@@ -126,8 +126,8 @@ class TaskAllocDynamics:
         free = self._alive & ~committed
         if self.tasks.towers is not None:
             free[self._tower[self._occupied]] = False  # a tower at peak demand cannot supply
+        base = self._bid if self.bidding else self._cost0
         if self._geom_dirty:  # positions, task slots or bids changed since the last refresh
-            base = self._bid if self.bidding else self._cost0
             if self._tower_tables is not None:  # EPT: towers never move, so each slot's column is its tower's
                 dist, costs = self._tower_tables
                 self._dist = dist[:, self._tower]  # column -1 (an empty slot) is the origin's
@@ -143,7 +143,6 @@ class TaskAllocDynamics:
             self._pc_obs = (self._pc * (self._present0[:, None] & self._occupied[None, :])).astype(np.float32)
             self._geom_dirty = False
         if self._entities_dirty:
-            base = self._bid if self.bidding else self._cost0
             self._ef_static = self.layout.entity_features(base * self._alive, self._supply, self._pos, self._bid)
             self._entities_dirty = False
         self._rem = rem
@@ -210,19 +209,18 @@ class TaskAllocDynamics:
         reopened, and at termination − every credit still unpaid, so that an episode's commitment rewards sum to its
         return."""
         new = self._occupied & ~self._open & ~self._credited
-        if np.count_nonzero(new):
+        closing = np.count_nonzero(new)
+        if not (closing or np.count_nonzero(self._credited)):  # nothing closes and nothing is owed (EPT's every step)
+            return 0.0
+        refund = self._credited & (self._open | ~self._occupied)
+        profit_total = 0.0
+        if closing:
             committed = self._assigned >= 0
             charges = np.bincount(self._assigned[committed], weights=self._charge[committed], minlength=self.max_tasks)
             profit = np.where(new, self._reward - charges, 0.0)
-            refund = self._credited & (self._open | ~self._occupied)
             self._credit += profit
             self._credited |= new
             profit_total = profit.sum()
-        elif np.count_nonzero(self._credited):  # nothing closes this step: only refunds can move
-            refund = self._credited & (self._open | ~self._occupied)
-            profit_total = 0.0
-        else:  # nothing closes and nothing is owed (EPT's every step)
-            return 0.0
         if terminated:
             refund |= self._credited
         total = float(profit_total - self._credit @ refund)

@@ -22,10 +22,11 @@ from sb3_taskalloc.common.utils import check_choices, check_counts, check_finite
 from sb3_taskalloc.two_stage_sac.decoding import Decoder, recommended_decoder
 from sb3_taskalloc.two_stage_sac.policies import check_spaces
 from sb3_taskalloc.two_stage_sac.search import SelectSearchResult, cover_search
-from sb3_taskalloc.two_stage_sac.select_stage import SelectState, task_profit
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState
 from sb3_taskalloc.two_stage_sac.updates import optimizer_step
 
 if TYPE_CHECKING:
+    from sb3_taskalloc.two_stage_sac.policies import TAMPolicy
     from sb3_taskalloc.two_stage_sac.two_stage_sac import TwoStageSAC
 
 
@@ -46,7 +47,7 @@ class _KeptDecodes(Decoder):
         super().__init__()
         self._decodes: list[SelectState] = []
 
-    def teams(self, policy: Any, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    def teams(self, policy: TAMPolicy, view: ObsView, task_of: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         st = policy.select_round(view, task_of, deterministic=True)
         self._decodes.append(st)
         return st.rank, st.kept()
@@ -64,8 +65,7 @@ def _rollout_decision(
         return action, rounds, [None] * len(rounds)
     kept = _KeptDecodes()
     action = kept.decide(model.policy, view, rounds).env_action
-    profits = [task_profit(st) for st in kept._decodes]
-    return action, rounds, [SelectSearchResult(st.rank, p, p) for st, p in zip(kept._decodes, profits, strict=True)]
+    return action, rounds, [SelectSearchResult.of_decode(st) for st in kept._decodes]
 
 
 def learn_callbacks(zoo: Sequence[Any], callback: MaybeCallback, progress_bar: bool) -> tuple[MaybeCallback, bool]:

@@ -13,7 +13,7 @@ import torch as th
 
 from sb3_taskalloc.common.distributions import MaskedCategorical
 from sb3_taskalloc.common.torch_layers import ObsView, PointerHead
-from sb3_taskalloc.two_stage_sac.select_stage import decode_round, round_profit, task_profit
+from sb3_taskalloc.two_stage_sac.select_stage import SelectState, decode_round, round_profit, task_profit
 
 #: The observation fields that the select stage reads besides the entity features of its embeddings (:mod:`.select_stage`).
 SELECT_FIELDS = ("supply", "demand", "reward", "pair_cost", "task_mask")
@@ -39,6 +39,12 @@ class SelectSearchResult(NamedTuple):
     profit: th.Tensor  # (B, M) its profit
     base: th.Tensor  # (B, M) the profit of the deterministic decode
 
+    @classmethod
+    def of_decode(cls, st: SelectState) -> SelectSearchResult:
+        """The result of the deterministic decode ``st`` alone: its teams, its profit as the best and as the base."""
+        profit = task_profit(st)
+        return cls(st.rank, profit, profit)
+
 
 def select_search(
     head: PointerHead,
@@ -63,9 +69,9 @@ def select_search(
     """
     d = head.embed_entities(view)  # the copies share their state's entity embeddings
     base = decode_round(head, view, task_of, deterministic=True, embedded=d, fixed_picks=fixed_picks)
-    p0 = task_profit(base)
     if samples <= 1:
-        return SelectSearchResult(base.rank, p0, p0)
+        return SelectSearchResult.of_decode(base)
+    p0 = task_profit(base)
     (B, N), M, S = task_of.shape, p0.shape[1], samples - 1
     rep = select_copies(view, S)
     tr = task_of.repeat_interleave(S, 0)
@@ -220,9 +226,7 @@ def cover_search(
     :param members: (B, N) the exact cover of the candidate pairs where the caller has it already (None: solved here)
     """
     if against is None:
-        base = decode_round(head, view, task_of, deterministic=True)
-        p0 = task_profit(base)
-        against = SelectSearchResult(base.rank, p0, p0)
+        against = SelectSearchResult.of_decode(decode_round(head, view, task_of, deterministic=True))
     if members is None:
         allowed = task_of.unsqueeze(-1) == th.arange(view.task_mask.shape[1], device=task_of.device)
         members = exact_covers(view, allowed, node_limit, time_limit)
